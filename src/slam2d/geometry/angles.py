@@ -1,0 +1,28 @@
+"""Angle wrapping: the one place where headings are brought into range.
+
+Convention: every wrapped angle lies in the half-open interval [-pi, pi).
+``wrap_angle(pi) == -pi`` and ``wrap_angle(-pi) == -pi``; a test pins this.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+TWO_PI = 2.0 * np.pi
+
+
+def wrap_angle(angle: ArrayLike) -> NDArray[np.float64]:
+    """Wrap angles to [-pi, pi), keeping shape.
+
+    Shapes: any -> same.
+    """
+    a = np.asarray(angle, dtype=np.float64)
+    r = np.mod(a + np.pi, TWO_PI) - np.pi
+    # np.mod can round up to exactly 2*pi for inputs a hair below -pi; fold it back.
+    return np.where(r >= np.pi, r - TWO_PI, r)
+
+
+def angle_diff(a: ArrayLike, b: ArrayLike) -> NDArray[np.float64]:
+    """Signed difference ``a - b`` wrapped to [-pi, pi). Every angular residual goes through here."""
+    return wrap_angle(np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64))

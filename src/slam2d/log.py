@@ -1,0 +1,303 @@
+"""``Log``: the one contract between data sources (simulator, dataset loaders) and estimators.
+
+A log holds T steps. Step ``t`` (1..T) is the motion from pose ``t-1`` to pose ``t`` reported by odometry, followed by
+the measurements taken at pose ``t``. Pose 0 is the start (``initial_pose``). Observations are stored flat, sorted by
+step, so that one step's batch is a slice.
+
+Ground truth (``true_poses``, ``true_landmarks``, ``walls``) is optional and is never handed to an estimator: the
+runner passes estimators only :class:`Step` objects, which hold no truth except ``Observations.landmark_id``, the id
+the data source itself reports (simulator oracle ids, or barcodes on real data). Only the ``known`` association
+method reads it; the association metrics compare against it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import zipfile
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+#: Observation id values that are not static landmarks.
+CLUTTER_ID = -1
+DYNAMIC_ID = -2
+
+
+class LogFormatError(ValueError):
+    """A log file is corrupt, truncated or not a slam2d log; the message names the file and the problem."""
+
+
+@dataclass(frozen=True)
+class Observations:
+    """A batch of range-bearing observations taken at one pose.
+
+    Shapes: range_m (K,), bearing_rad (K,), landmark_id (K,) int (-1 clutter, -2 moving object, >=0 landmark id as
+    reported by the source), descriptor (K, D) or None.
+    """
+
+    range_m: Array
+    bearing_rad: Array
+    landmark_id: IntArray
+    descriptor: Array | None = None
+
+    def __len__(self) -> int:
+        return int(self.range_m.shape[0])
+
+    @property
+    def z(self) -> Array:
+        """(K, 2) array of [range, bearing]."""
+        return np.stack([self.range_m, self.bearing_rad], axis=-1)
+
+    def subset(self, mask: NDArray[np.bool_] | IntArray) -> Observations:
+        return Observations(
+            self.range_m[mask],
+            self.bearing_rad[mask],
+            self.landmark_id[mask],
+            None if self.descriptor is None else self.descriptor[mask],
+        )
+
+
+@dataclass(frozen=True)
+class Scan:
+    """One lidar scan. Shapes: ranges_m (B,), angles_rad (B,) in the robot frame; max_range_m marks no return."""
+
+    ranges_m: Array
+    angles_rad: Array
+    max_range_m: float
+
+
+@dataclass(frozen=True)
+class Step:
+    """Everything an estimator may see at step ``index``: odometry and the measurements at the new pose.
+
+    ``odometry`` is the measured relative motion [dx, dy, dtheta] from pose index-1 to pose index, in the frame of
+    pose index-1. ``gps`` is a measured [x, y] or None. ``scan`` is a lidar scan or None.
+    """
+
+    index: int
+    time_s: float
+    dt_s: float
+    odometry: Array
+    observations: Observations
+    gps: Array | None = None
+    scan: Scan | None = None
+
+
+_ARRAY_FIELDS = (
+    "stamps_s",
+    "odometry",
+    "obs_step",
+    "obs_range_m",
+    "obs_bearing_rad",
+    "obs_id",
+    "obs_descriptor",
+    "true_poses",
+    "true_landmarks",
+    "true_landmark_ids",
+    "walls",
+    "gps_step",
+    "gps_xy",
+    "scan_step",
+    "scan_ranges_m",
+    "scan_angles_rad",
+    "dynamic_xy",
+)
+
+
+@dataclass(frozen=True, eq=False)
+class Log:
+    """A recorded run: odometry and observations per step, optional ground truth, and metadata.
+
+    Shapes (T steps, K observations, N landmarks, W walls, G gps fixes, S scans, B beams):
+    stamps_s (T+1,), odometry (T,3), obs_step (K,) int sorted, obs_range_m (K,), obs_bearing_rad (K,), obs_id (K,) int,
+    obs_descriptor (K,D) or None, true_poses (T+1,3) or None, true_landmarks (N,2) or None, true_landmark_ids (N,)
+    or None, walls (W,4) [x0,y0,x1,y1] or None, gps_step (G,), gps_xy (G,2), scan_step (S,), scan_ranges_m (S,B),
+    scan_angles_rad (B,), dynamic_xy (T+1,M,2) true positions of moving objects or None.
+    ``metadata`` is JSON-serialisable: seed, scenario, config, sensor parameters, units, source.
+    """
+
+    stamps_s: Array
+    odometry: Array
+    obs_step: IntArray
+    obs_range_m: Array
+    obs_bearing_rad: Array
+    obs_id: IntArray
+    initial_pose: Array = field(default_factory=lambda: np.zeros(3))
+    obs_descriptor: Array | None = None
+    true_poses: Array | None = None
+    true_landmarks: Array | None = None
+    true_landmark_ids: IntArray | None = None
+    walls: Array | None = None
+    gps_step: IntArray | None = None
+    gps_xy: Array | None = None
+    scan_step: IntArray | None = None
+    scan_ranges_m: Array | None = None
+    scan_angles_rad: Array | None = None
+    scan_max_range_m: float = 0.0
+    dynamic_xy: Array | None = None
+    metadata: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        t = self.odometry.shape[0]
+        if self.odometry.ndim != 2 or self.odometry.shape[1] != 3:
+            raise ValueError(f"odometry must have shape (T, 3), got {self.odometry.shape}")
+        if self.stamps_s.shape != (t + 1,):
+            raise ValueError(f"stamps_s must have shape ({t + 1},), got {self.stamps_s.shape}")
+        k = self.obs_step.shape[0]
+        for name in ("obs_range_m", "obs_bearing_rad", "obs_id"):
+            if getattr(self, name).shape != (k,):
+                raise ValueError(f"{name} must have shape ({k},), got {getattr(self, name).shape}")
+        if k and (np.any(np.diff(self.obs_step) < 0) or self.obs_step[0] < 0 or self.obs_step[-1] > t):
+            raise ValueError("obs_step must be sorted and within [0, T]")
+        if self.true_poses is not None and self.true_poses.shape != (t + 1, 3):
+            raise ValueError(f"true_poses must have shape ({t + 1}, 3), got {self.true_poses.shape}")
+        # offsets so that a step's observations are one slice: obs[starts[t]:starts[t+1]]
+        object.__setattr__(self, "_obs_starts", np.searchsorted(self.obs_step, np.arange(t + 2)))
+        if self.gps_step is not None:
+            object.__setattr__(self, "_gps_index", {int(s): i for i, s in enumerate(self.gps_step)})
+        if self.scan_step is not None:
+            object.__setattr__(self, "_scan_index", {int(s): i for i, s in enumerate(self.scan_step)})
+
+    # ------------------------------------------------------------------ access
+    @property
+    def num_steps(self) -> int:
+        return int(self.odometry.shape[0])
+
+    def __len__(self) -> int:
+        return self.num_steps
+
+    def observations_at(self, index: int) -> Observations:
+        """Observations taken at pose ``index`` (0..T)."""
+        starts = self._obs_starts  # type: ignore[attr-defined]
+        sl = slice(int(starts[index]), int(starts[index + 1]))
+        return Observations(
+            self.obs_range_m[sl],
+            self.obs_bearing_rad[sl],
+            self.obs_id[sl],
+            None if self.obs_descriptor is None else self.obs_descriptor[sl],
+        )
+
+    def step(self, index: int) -> Step:
+        """The estimator-facing record of step ``index`` (1..T)."""
+        if not 1 <= index <= self.num_steps:
+            raise IndexError(f"step index {index} out of range 1..{self.num_steps}")
+        gps = None
+        if self.gps_step is not None and self.gps_xy is not None:
+            i = self._gps_index.get(index)  # type: ignore[attr-defined]
+            gps = None if i is None else self.gps_xy[i]
+        scan = None
+        if self.scan_step is not None and self.scan_ranges_m is not None and self.scan_angles_rad is not None:
+            i = self._scan_index.get(index)  # type: ignore[attr-defined]
+            if i is not None:
+                scan = Scan(self.scan_ranges_m[i], self.scan_angles_rad, self.scan_max_range_m)
+        return Step(
+            index=index,
+            time_s=float(self.stamps_s[index]),
+            dt_s=float(self.stamps_s[index] - self.stamps_s[index - 1]),
+            odometry=self.odometry[index - 1],
+            observations=self.observations_at(index),
+            gps=gps,
+            scan=scan,
+        )
+
+    def __iter__(self) -> Iterator[Step]:
+        for i in range(1, self.num_steps + 1):
+            yield self.step(i)
+
+    def head(self, steps: int) -> Log:
+        """The first ``steps`` steps of this log (a new Log)."""
+        steps = min(steps, self.num_steps)
+        k = int(self._obs_starts[steps + 1])  # type: ignore[attr-defined]
+
+        def cut(arr: Any, idx: Any, n: int) -> Any:
+            return None if arr is None else arr[idx(n)]
+
+        keep_g = None if self.gps_step is None else self.gps_step <= steps
+        keep_s = None if self.scan_step is None else self.scan_step <= steps
+        return dataclasses.replace(
+            self,
+            stamps_s=self.stamps_s[: steps + 1],
+            odometry=self.odometry[:steps],
+            obs_step=self.obs_step[:k],
+            obs_range_m=self.obs_range_m[:k],
+            obs_bearing_rad=self.obs_bearing_rad[:k],
+            obs_id=self.obs_id[:k],
+            obs_descriptor=cut(self.obs_descriptor, lambda n: slice(0, n), k),
+            true_poses=cut(self.true_poses, lambda n: slice(0, n), steps + 1),
+            gps_step=None if keep_g is None else self.gps_step[keep_g],  # type: ignore[index]
+            gps_xy=None if keep_g is None or self.gps_xy is None else self.gps_xy[keep_g],
+            scan_step=None if keep_s is None else self.scan_step[keep_s],  # type: ignore[index]
+            scan_ranges_m=None if keep_s is None or self.scan_ranges_m is None else self.scan_ranges_m[keep_s],
+            dynamic_xy=cut(self.dynamic_xy, lambda n: slice(0, n), steps + 1),
+        )
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, path: str | Path) -> Path:
+        """Write the log as an ``.npz`` archive holding the arrays plus ``metadata.json``. Returns the path."""
+        path = Path(path)
+        arrays = {n: getattr(self, n) for n in _ARRAY_FIELDS if getattr(self, n) is not None}
+        arrays["initial_pose"] = self.initial_pose
+        meta = {"format": "slam2d-log", "version": 1, "scan_max_range_m": self.scan_max_range_m,
+                "metadata": dict(self.metadata)}
+        with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+            for name, arr in arrays.items():
+                buf = io.BytesIO()
+                np.save(buf, np.asarray(arr), allow_pickle=False)
+                zf.writestr(name + ".npy", buf.getvalue())
+            zf.writestr("metadata.json", json.dumps(meta, sort_keys=True))
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> Log:
+        """Read a log written by :meth:`save`; raises :class:`LogFormatError` naming the file and the problem."""
+        path = Path(path)
+        try:
+            zf = zipfile.ZipFile(path)
+        except FileNotFoundError:
+            raise LogFormatError(f"{path}: no such file") from None
+        except (zipfile.BadZipFile, OSError) as e:
+            raise LogFormatError(f"{path}: not a slam2d log (corrupt or truncated archive: {e})") from None
+        try:
+            with zf:
+                names = set(zf.namelist())
+                if "metadata.json" not in names:
+                    raise LogFormatError(f"{path}: not a slam2d log (metadata.json missing)")
+                meta = json.loads(zf.read("metadata.json"))
+                if meta.get("format") != "slam2d-log":
+                    raise LogFormatError(f"{path}: not a slam2d log (format tag {meta.get('format')!r})")
+                arrays: dict[str, Any] = {}
+                for n in (*_ARRAY_FIELDS, "initial_pose"):
+                    if n + ".npy" in names:
+                        arrays[n] = np.load(io.BytesIO(zf.read(n + ".npy")), allow_pickle=False)
+        except LogFormatError:
+            raise
+        except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError) as e:
+            raise LogFormatError(f"{path}: corrupt slam2d log ({type(e).__name__}: {e})") from None
+        missing = [n for n in ("stamps_s", "odometry", "obs_step", "obs_range_m", "obs_bearing_rad", "obs_id")
+                   if n not in arrays]
+        if missing:
+            raise LogFormatError(f"{path}: corrupt slam2d log (missing arrays {missing})")
+        try:
+            return cls(**arrays, scan_max_range_m=float(meta.get("scan_max_range_m", 0.0)),
+                       metadata=meta.get("metadata", {}))
+        except ValueError as e:
+            raise LogFormatError(f"{path}: inconsistent slam2d log ({e})") from None
+
+    def equals(self, other: Log) -> bool:
+        """Exact (bit-identical) equality of every array and the metadata."""
+        for n in (*_ARRAY_FIELDS, "initial_pose"):
+            a, b = getattr(self, n), getattr(other, n)
+            if (a is None) != (b is None):
+                return False
+            if a is not None and not (a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b)):
+                return False
+        return json.dumps(dict(self.metadata), sort_keys=True) == json.dumps(dict(other.metadata), sort_keys=True)

@@ -1,0 +1,32 @@
+"""Motion and sensor models, each with Jacobians and (where it exists) an inverse model."""
+
+from slam2d.models.lidar import LidarConfig as LidarConfig
+from slam2d.models.lidar import cast_rays as cast_rays
+from slam2d.models.lidar import scan_to_points as scan_to_points
+from slam2d.models.lidar import simulate_scan as simulate_scan
+from slam2d.models.motion import MotionNoise as MotionNoise
+from slam2d.models.motion import VelocityNoise as VelocityNoise
+from slam2d.models.motion import odometry_covariance as odometry_covariance
+from slam2d.models.motion import odometry_predict as odometry_predict
+from slam2d.models.motion import odometry_predict_jacobians as odometry_predict_jacobians
+from slam2d.models.motion import odometry_to_rtr as odometry_to_rtr
+from slam2d.models.motion import rtr_to_odometry as rtr_to_odometry
+from slam2d.models.motion import sample_odometry as sample_odometry
+from slam2d.models.motion import velocity_covariance as velocity_covariance
+from slam2d.models.motion import velocity_increment as velocity_increment
+from slam2d.models.motion import velocity_predict as velocity_predict
+from slam2d.models.motion import velocity_predict_jacobians as velocity_predict_jacobians
+from slam2d.models.sensors import SensorConfig as SensorConfig
+from slam2d.models.sensors import absolute_position as absolute_position
+from slam2d.models.sensors import absolute_position_jacobians as absolute_position_jacobians
+from slam2d.models.sensors import bearing_only as bearing_only
+from slam2d.models.sensors import bearing_only_jacobians as bearing_only_jacobians
+from slam2d.models.sensors import range_bearing as range_bearing
+from slam2d.models.sensors import range_bearing_inverse as range_bearing_inverse
+from slam2d.models.sensors import range_bearing_inverse_jacobians as range_bearing_inverse_jacobians
+from slam2d.models.sensors import range_bearing_jacobians as range_bearing_jacobians
+from slam2d.models.sensors import range_only as range_only
+from slam2d.models.sensors import range_only_jacobians as range_only_jacobians
+from slam2d.models.sensors import sense_clutter as sense_clutter
+from slam2d.models.sensors import sense_landmarks as sense_landmarks
+from slam2d.models.sensors import visible as visible

@@ -1,0 +1,188 @@
+"""Point-landmark sensor models with Jacobians and inverse models.
+
+Range-bearing: z = [|l - t|, atan2(l_y - y, l_x - x) - theta]. Bearing-only and range-only take one row of it.
+Absolute position (GPS): z = [x, y].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from slam2d import _jacobians
+from slam2d.config import check_nonnegative, check_positive, check_probability
+from slam2d.geometry import se2
+from slam2d.geometry.angles import wrap_angle
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class SensorConfig:
+    """A range-bearing landmark sensor."""
+
+    max_range_m: float = 8.0
+    """landmarks farther than this are not seen (m)."""
+    fov_rad: float = 2 * np.pi
+    """full field of view, centred on the heading (rad); 2*pi is omnidirectional."""
+    range_std_m: float = 0.1
+    """range noise standard deviation (m)."""
+    bearing_std_rad: float = 0.02
+    """bearing noise standard deviation (rad)."""
+    detection_prob: float = 1.0
+    """probability that a landmark in range is reported."""
+    clutter_rate: float = 0.0
+    """mean number of spurious detections per scan (Poisson), uniform in range and field of view."""
+    descriptor_dim: int = 0
+    """length of the optional landmark signature vector (0: none)."""
+    descriptor_std: float = 0.05
+    """noise on each observed signature component."""
+
+    def __post_init__(self) -> None:
+        check_positive(self, "max_range_m", "fov_rad", "range_std_m", "bearing_std_rad")
+        check_probability(self, "detection_prob")
+        check_nonnegative(self, "clutter_rate", "descriptor_std")
+        if self.fov_rad > 2 * np.pi + 1e-12:
+            raise ValueError(f"SensorConfig.fov_rad must be <= 2*pi (got {self.fov_rad})")
+        if self.descriptor_dim < 0:
+            raise ValueError(f"SensorConfig.descriptor_dim must be >= 0 (got {self.descriptor_dim})")
+
+    @property
+    def covariance(self) -> Array:
+        """R = diag(range_std^2, bearing_std^2)."""
+        return np.diag([self.range_std_m**2, self.bearing_std_rad**2])
+
+
+def range_bearing(pose: ArrayLike, landmark: ArrayLike) -> Array:
+    """Predicted [range, bearing] of ``landmark`` from ``pose``. Shapes: (...,3),(...,2) -> (...,2)."""
+    pose, landmark = np.asarray(pose, dtype=np.float64), np.asarray(landmark, dtype=np.float64)
+    dx, dy = landmark[..., 0] - pose[..., 0], landmark[..., 1] - pose[..., 1]
+    return np.stack([np.hypot(dx, dy), wrap_angle(np.arctan2(dy, dx) - pose[..., 2])], axis=-1)
+
+
+def range_bearing_jacobians(pose: ArrayLike, landmark: ArrayLike) -> tuple[Array, Array]:
+    """``(H_pose (...,2,3), H_landmark (...,2,2))`` (Probabilistic Robotics eq. 10.18)."""
+    pose, landmark = np.asarray(pose, dtype=np.float64), np.asarray(landmark, dtype=np.float64)
+    dx, dy = landmark[..., 0] - pose[..., 0], landmark[..., 1] - pose[..., 1]
+    q = dx * dx + dy * dy
+    r = np.sqrt(q)
+    zero = np.zeros_like(q)
+    hl = se2.matrix_from_rows([dx / r, dy / r], [-dy / q, dx / q])
+    hp = se2.matrix_from_rows([-dx / r, -dy / r, zero], [dy / q, -dx / q, zero - 1.0])
+    return hp, hl
+
+
+_jacobians.register(range_bearing, range_bearing_jacobians, ("pose", "point"), (1,))
+
+
+def range_bearing_inverse(pose: ArrayLike, z: ArrayLike) -> Array:
+    """Landmark position from a [range, bearing] measurement at ``pose``. Shapes: (...,3),(...,2) -> (...,2)."""
+    pose, z = np.asarray(pose, dtype=np.float64), np.asarray(z, dtype=np.float64)
+    a = pose[..., 2] + z[..., 1]
+    return np.stack([pose[..., 0] + z[..., 0] * np.cos(a), pose[..., 1] + z[..., 0] * np.sin(a)], axis=-1)
+
+
+def range_bearing_inverse_jacobians(pose: ArrayLike, z: ArrayLike) -> tuple[Array, Array]:
+    """``(G_pose (...,2,3), G_z (...,2,2))``: the Jacobians used to augment an EKF-SLAM state."""
+    pose, z = np.asarray(pose, dtype=np.float64), np.asarray(z, dtype=np.float64)
+    a = pose[..., 2] + z[..., 1]
+    c, s, r = np.cos(a), np.sin(a), z[..., 0]
+    c, s, r = np.broadcast_arrays(c, s, r)
+    one, zero = np.ones_like(c), np.zeros_like(c)
+    gp = se2.matrix_from_rows([one, zero, -r * s], [zero, one, r * c])
+    gz = se2.matrix_from_rows([c, -r * s], [s, r * c])
+    return gp, gz
+
+
+_jacobians.register(range_bearing_inverse, range_bearing_inverse_jacobians, ("pose", "range_bearing"))
+
+
+def bearing_only(pose: ArrayLike, landmark: ArrayLike) -> Array:
+    """Predicted bearing, shape (...,1)."""
+    return range_bearing(pose, landmark)[..., 1:]
+
+
+def bearing_only_jacobians(pose: ArrayLike, landmark: ArrayLike) -> tuple[Array, Array]:
+    """``(H_pose (...,1,3), H_landmark (...,1,2))``."""
+    hp, hl = range_bearing_jacobians(pose, landmark)
+    return hp[..., 1:, :], hl[..., 1:, :]
+
+
+_jacobians.register(bearing_only, bearing_only_jacobians, ("pose", "point"), (0,))
+
+
+def range_only(pose: ArrayLike, landmark: ArrayLike) -> Array:
+    """Predicted range, shape (...,1)."""
+    return range_bearing(pose, landmark)[..., :1]
+
+
+def range_only_jacobians(pose: ArrayLike, landmark: ArrayLike) -> tuple[Array, Array]:
+    """``(H_pose (...,1,3), H_landmark (...,1,2))``."""
+    hp, hl = range_bearing_jacobians(pose, landmark)
+    return hp[..., :1, :], hl[..., :1, :]
+
+
+_jacobians.register(range_only, range_only_jacobians, ("pose", "point"))
+
+
+def absolute_position(pose: ArrayLike) -> Array:
+    """GPS-like measurement of the position, shape (...,2)."""
+    return np.asarray(pose, dtype=np.float64)[..., :2].copy()
+
+
+def absolute_position_jacobians(pose: ArrayLike) -> tuple[Array]:
+    """``(H_pose (...,2,3),)``."""
+    pose = np.asarray(pose, dtype=np.float64)
+    h = np.zeros(pose.shape[:-1] + (2, 3))
+    h[..., 0, 0] = h[..., 1, 1] = 1.0
+    return (h,)
+
+
+_jacobians.register(absolute_position, absolute_position_jacobians, ("pose",))
+
+
+def visible(z: ArrayLike, config: SensorConfig) -> NDArray[np.bool_]:
+    """Which predicted [range, bearing] values fall inside the sensor's range and field of view."""
+    z = np.asarray(z, dtype=np.float64)
+    return (z[..., 0] <= config.max_range_m) & (z[..., 0] > 1e-6) & (np.abs(z[..., 1]) <= 0.5 * config.fov_rad)
+
+
+def sense_landmarks(
+    pose: ArrayLike,
+    landmarks: ArrayLike,
+    landmark_ids: ArrayLike,
+    config: SensorConfig,
+    rng: np.random.Generator,
+    descriptors: ArrayLike | None = None,
+) -> tuple[Array, NDArray[np.int64], Array | None]:
+    """Simulate one noisy scan of point landmarks (without clutter; see :func:`sense_clutter`).
+
+    Returns (z (K,2), ids (K,), descriptors (K,D) or None). Noise draws happen for every landmark, visible or not,
+    so that a landmark's noise sequence does not depend on what else is in view.
+    """
+    lm = np.asarray(landmarks, dtype=np.float64).reshape(-1, 2)
+    ids = np.asarray(landmark_ids, dtype=np.int64).reshape(-1)
+    z_true = range_bearing(pose, lm)
+    noise = rng.standard_normal((lm.shape[0], 2)) * [config.range_std_m, config.bearing_std_rad]
+    detect = rng.random(lm.shape[0]) < config.detection_prob
+    desc_noise = rng.standard_normal((lm.shape[0], config.descriptor_dim)) * config.descriptor_std
+    keep = visible(z_true, config) & detect
+    z = z_true + noise
+    z[:, 1] = wrap_angle(z[:, 1])
+    z[:, 0] = np.maximum(z[:, 0], 0.0)
+    desc = None
+    if config.descriptor_dim > 0 and descriptors is not None:
+        desc = (np.asarray(descriptors, dtype=np.float64) + desc_noise)[keep]
+    return z[keep], ids[keep], desc
+
+
+def sense_clutter(config: SensorConfig, rng: np.random.Generator) -> tuple[Array, Array | None]:
+    """Spurious detections: Poisson count, uniform in range and field of view, random signatures."""
+    n = int(rng.poisson(config.clutter_rate)) if config.clutter_rate > 0 else 0
+    r = rng.uniform(0.2, config.max_range_m, size=n)
+    b = rng.uniform(-0.5 * config.fov_rad, 0.5 * config.fov_rad, size=n)
+    desc = rng.random((n, config.descriptor_dim)) if config.descriptor_dim > 0 else None
+    return np.stack([r, wrap_angle(b)], axis=-1).reshape(n, 2), desc
+

@@ -1,0 +1,207 @@
+"""Scenario catalogue: each builds a :class:`World`, a driver's waypoints and a start pose from a config and an rng.
+
+* ``room``: a 20 x 14 m room with a pillar and ~30 landmarks; the robot drives two laps (the default scenario).
+* ``loop``: a 4 m wide corridor around a 60 x 40 m block: a 200 m loop that returns to its start.
+* ``warehouse``: identical shelf rows whose posts form repeating landmark patterns, with forklifts driving the aisles.
+* ``grid``: landmarks on a regular grid (any count) and a circular drive, for scaling studies.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slam2d.config import check_nonnegative, check_positive
+from slam2d.models.lidar import LidarConfig
+from slam2d.models.motion import MotionNoise
+from slam2d.models.sensors import SensorConfig
+from slam2d.sim.world import MovingObject, World, box_walls
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ScenarioConfig:
+    """Everything that defines a simulated run except the seed. ``None`` means "the scenario's default"."""
+
+    name: str = "room"
+    """scenario name; see ``slam2d.sim.SCENARIOS``."""
+    steps: int | None = None
+    """number of steps to simulate."""
+    dt_s: float | None = None
+    """time between steps (s)."""
+    speed_mps: float | None = None
+    """cruise speed of the robot (m/s)."""
+    landmarks: int | None = None
+    """number of landmarks (room, loop, grid)."""
+    moving_objects: int | None = None
+    """number of forklifts (warehouse)."""
+    driver: Literal["waypoints", "explore"] = "waypoints"
+    """how the robot is steered: the scenario's route, or wandering with wall avoidance."""
+    motion: MotionNoise = field(default_factory=MotionNoise)
+    """odometry noise."""
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    """range-bearing landmark sensor."""
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+    """lidar (scans are skipped in worlds without walls)."""
+    gps_every: int = 0
+    """take a GPS fix every this many steps (0: no GPS)."""
+    gps_std_m: float = 0.5
+    """GPS noise standard deviation per axis (m)."""
+
+    def __post_init__(self) -> None:
+        if self.name not in SCENARIOS:
+            raise ValueError(f"unknown scenario {self.name!r}; valid scenarios: {sorted(SCENARIOS)}")
+        for n in ("steps", "landmarks", "moving_objects"):
+            v = getattr(self, n)
+            if v is not None and v < (0 if n == "moving_objects" else 1):
+                raise ValueError(f"ScenarioConfig.{n} must be >= {0 if n == 'moving_objects' else 1} (got {v})")
+        for n in ("dt_s", "speed_mps"):
+            if getattr(self, n) is not None:
+                check_positive(self, n)
+        check_positive(self, "gps_std_m")
+        check_nonnegative(self, "gps_every")
+        spec = SCENARIOS[self.name]
+        for n in ("landmarks", "moving_objects"):
+            if getattr(self, n) is not None and n not in spec.defaults:
+                raise ValueError(f"ScenarioConfig.{n} cannot be set for scenario {self.name!r}")
+
+    def resolved(self) -> ScenarioConfig:
+        """This config with every ``None`` replaced by the scenario's default."""
+        spec = SCENARIOS[self.name]
+        updates: dict[str, Any] = {k: v for k, v in spec.defaults.items() if getattr(self, k) is None}
+        return dataclasses.replace(self, **updates)
+
+
+@dataclass(frozen=True)
+class Layout:
+    """What a scenario builder returns."""
+
+    world: World
+    waypoints: Array
+    initial_pose: Array
+
+
+@dataclass(frozen=True)
+class ScenarioSpec:
+    name: str
+    description: str
+    defaults: dict[str, float | int]
+    build: Callable[[ScenarioConfig, np.random.Generator], Layout]
+
+
+def _random_landmarks(rng: np.random.Generator, n: int, box: tuple[float, float, float, float],
+                      keep: Callable[[Array], NDArray[np.bool_]]) -> Array:
+    """Rejection-sample ``n`` points in ``box`` that satisfy ``keep``."""
+    out: list[Array] = []
+    while sum(len(o) for o in out) < n:
+        p = rng.uniform(box[:2], box[2:], size=(4 * n, 2))
+        out.append(p[keep(p)])
+    return np.vstack(out)[:n]
+
+
+def _dist_to_polyline(p: Array, poly: Array) -> Array:
+    """Distance from points (K,2) to a closed polyline (P,2)."""
+    a = poly
+    b = np.roll(poly, -1, axis=0)
+    ab = b - a
+    t = np.clip(np.einsum("kpi,pi->kp", p[:, None] - a[None], ab) / np.sum(ab * ab, axis=1), 0, 1)
+    proj = a[None] + t[..., None] * ab[None]
+    return np.min(np.hypot(*(p[:, None] - proj).transpose(2, 0, 1)), axis=1)
+
+
+def _room(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
+    route = np.array([[3.0, 3.0], [17.0, 3.0], [17.0, 11.0], [3.0, 11.0]])
+    pillar = (9.0, 6.0, 11.0, 8.0)
+    walls = np.vstack([box_walls(0, 0, 20, 14), box_walls(*pillar)])
+
+    def keep(p: Array) -> NDArray[np.bool_]:
+        in_pillar = (p[:, 0] > pillar[0] - 0.3) & (p[:, 0] < pillar[2] + 0.3) & (p[:, 1] > pillar[1] - 0.3) & (
+            p[:, 1] < pillar[3] + 0.3)
+        return (_dist_to_polyline(p, route) > 0.8) & ~in_pillar
+
+    lm = _random_landmarks(rng, int(cfg.landmarks or 30), (0.7, 0.7, 19.3, 13.3), keep)
+    world = World(lm, np.arange(len(lm)), walls, bounds=(0, 0, 20, 14))
+    return Layout(world, route, np.array([3.0, 3.0, 0.0]))
+
+
+def _loop(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
+    w, h = 60.0, 40.0
+    route = np.array([[w, 0.0], [w, h], [0.0, h], [0.0, 0.0]])
+    walls = np.vstack([box_walls(-2, -2, w + 2, h + 2), box_walls(2, 2, w - 2, h - 2)])
+    n = int(cfg.landmarks or 100)
+    perimeter = 2 * (w + h)
+    s = (np.arange(n) // 2 + 0.5) * perimeter / ((n + 1) // 2) + rng.uniform(-0.8, 0.8, n)
+    side = np.where(np.arange(n) % 2 == 0, 1.5, -1.5) + rng.uniform(-0.2, 0.2, n)
+    # walk the centreline rectangle (0,0)->(w,0)->(w,h)->(0,h) and offset to the left (+) or right (-)
+    s = np.mod(s, perimeter)
+    corners = np.array([[0, 0], [w, 0], [w, h], [0, h]], dtype=float)
+    lengths = np.array([w, h, w, h])
+    k = np.minimum(np.searchsorted(np.cumsum(lengths), s, side="right"), 3)
+    start = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])[k]
+    d = (np.roll(corners, -1, axis=0) - corners)[k] / lengths[k, None]
+    normal = np.stack([-d[:, 1], d[:, 0]], axis=-1)
+    lm = corners[k] + d * (s - start)[:, None] + normal * side[:, None]
+    world = World(lm, np.arange(n), walls, bounds=(-2, -2, w + 2, h + 2))
+    return Layout(world, route, np.array([0.0, 0.0, 0.0]))
+
+
+def _warehouse(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
+    shelves_y = [6.0, 12.0, 18.0, 24.0]
+    walls = [box_walls(0, 0, 40, 30)]
+    posts = []
+    for y in shelves_y:
+        walls.append(box_walls(8, y, 32, y + 1))
+        for x in np.arange(8.0, 32.1, 4.0):
+            posts += [[x, y - 0.2], [x, y + 1.2]]
+    lm = np.array(posts)
+    aisles = [3.0, 9.5, 15.5, 21.5, 27.5]
+    route = []
+    for i, y in enumerate(aisles):
+        xs = [4.0, 36.0] if i % 2 == 0 else [36.0, 4.0]
+        route += [[xs[0], y], [xs[1], y]]
+    route_arr = np.array(route + route[::-1][1:-1])
+    movers = tuple(
+        MovingObject(np.array([[6.0, y + 0.9], [34.0, y + 0.9]]), speed_mps=0.8 + 0.1 * i)
+        for i, y in enumerate(aisles[1:4][: int(cfg.moving_objects if cfg.moving_objects is not None else 3)])
+    )
+    world = World(lm, np.arange(len(lm)), np.vstack(walls), moving=movers, bounds=(0, 0, 40, 30))
+    return Layout(world, route_arr, np.array([4.0, 3.0, 0.0]))
+
+
+def _grid(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
+    n = int(cfg.landmarks or 100)
+    side = int(np.ceil(np.sqrt(n)))
+    spacing = 4.0
+    ij = np.stack(np.unravel_index(np.arange(n), (side, side)), axis=-1).astype(float)
+    lm = ij * spacing + rng.uniform(-0.5, 0.5, size=(n, 2))
+    extent = (side - 1) * spacing
+    centre = np.array([extent / 2, extent / 2])
+    radius = max(4.0, 0.35 * extent)
+    a = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    route = centre + radius * np.stack([np.cos(a), np.sin(a)], axis=-1)
+    world = World(lm, np.arange(n), np.zeros((0, 4)), bounds=(-2, -2, extent + 2, extent + 2))
+    start = np.array([route[0, 0], route[0, 1], np.pi / 2])
+    return Layout(world, np.roll(route, -1, axis=0), start)
+
+
+SCENARIOS: dict[str, ScenarioSpec] = {
+    "room": ScenarioSpec("room", "20 x 14 m room, ~30 landmarks, two laps", dict(steps=450, dt_s=0.2, speed_mps=1.0,
+                                                                                  landmarks=30), _room),
+    "loop": ScenarioSpec("loop", "200 m corridor loop that returns to its start",
+                         dict(steps=460, dt_s=0.25, speed_mps=2.0, landmarks=100), _loop),
+    "warehouse": ScenarioSpec("warehouse", "repetitive shelf aisles with moving forklifts",
+                              dict(steps=600, dt_s=0.2, speed_mps=1.2, moving_objects=3), _warehouse),
+    "grid": ScenarioSpec("grid", "landmarks on a grid (any count), circular drive; for scaling",
+                         dict(steps=300, dt_s=0.2, speed_mps=1.5, landmarks=100), _grid),
+}
+
+
+def register_scenario(spec: ScenarioSpec) -> None:
+    """Add a scenario to the catalogue (used by modules that define special-purpose worlds)."""
+    SCENARIOS[spec.name] = spec

@@ -1,0 +1,1 @@
+"""Matplotlib figures from results (optional extra ``slam2d[viz]``); no math lives here."""

@@ -1,0 +1,59 @@
+import json
+import subprocess
+import sys
+
+import pytest
+
+from slam2d.cli.main import build_parser, main
+
+
+def test_every_command_has_help(capsys):
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    assert {"simulate", "run", "demo"} <= set(sub.choices)
+    for name in sub.choices:
+        with pytest.raises(SystemExit) as e:
+            main([name, "--help"])
+        assert e.value.code == 0
+        assert "usage: slam2d " + name in capsys.readouterr().out
+
+
+def test_simulate_then_run_from_log_writes_json(tmp_path, capsys):
+    log = tmp_path / "room.npz"
+    assert main(["simulate", "--scenario", "room", "--seed", "4", "--out", str(log), "--set", "steps=40"]) == 0
+    out = tmp_path / "r.json"
+    assert main(["run", "--log", str(log), "--estimator", "dead-reckoning", "--seed", "4", "--json", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    for k in ["ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_rad", "steps", "step_ms_mean", "estimator", "scenario",
+              "seed", "landmarks_estimated"]:
+        assert k in rec
+    assert rec["steps"] == 40 and rec["scenario"] == "room" and rec["seed"] == 4
+    assert "ate_rmse_m" in capsys.readouterr().out
+
+
+def test_set_overrides_reach_the_simulation(tmp_path):
+    out = tmp_path / "g.json"
+    assert main(["run", "--scenario", "grid", "--set", "landmarks=400", "--set", "steps=25", "--json", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert rec["steps"] == 25 and rec["scenario_config"]["landmarks"] == 400
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["run", "--scenario", "nope"], "valid scenarios"),
+        (["run", "--estimator", "nope"], "valid estimators"),
+        (["run", "--set", "sensor.range_std_m=-1"], "sensor.range_std_m"),
+        (["run", "--set", "steps"], "KEY=VALUE"),
+        (["run", "--log", "/nonexistent/x.npz"], "no such file"),
+    ],
+)
+def test_bad_input_gives_a_one_line_error(argv, message, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1
+
+
+def test_console_script_runs_as_module():
+    r = subprocess.run([sys.executable, "-m", "slam2d", "--help"], capture_output=True, text=True, check=True)
+    assert "simulate" in r.stdout and "run" in r.stdout

@@ -1,0 +1,77 @@
+import numpy as np
+import pytest
+
+import slam2d
+from slam2d.eval import align_se2, ate, rpe
+from slam2d.geometry import compose
+
+
+def test_ate_is_zero_after_aligning_a_moved_copy(rng):
+    traj = np.cumsum(rng.normal(size=(100, 3)), axis=0)
+    moved = compose(np.array([3.0, -7.0, 2.1]), traj)
+    res = ate(moved, traj)
+    assert res.rmse_m < 1e-9
+    np.testing.assert_allclose(compose(res.alignment, np.array([0.0, 0.0, 0.0]))[:2],
+                               align_se2(moved, traj)[:2])
+    assert ate(moved, traj, align=False).rmse_m > 1.0
+
+
+def test_rpe_of_identical_trajectories_is_zero_and_detects_a_kink(rng):
+    traj = np.cumsum(rng.normal(size=(50, 3)), axis=0)
+    r = rpe(traj, traj)
+    assert r.trans_rmse_m == 0 and r.rot_rmse_rad == 0
+    bent = traj.copy()
+    bent[30, 2] += 0.2  # one heading off by 0.2 rad: two relative poses see it
+    r = rpe(bent, traj)
+    assert np.count_nonzero(r.rot_errors_rad > 1e-12) == 2
+    assert r.rot_errors_rad.max() == pytest.approx(0.2)
+
+
+def test_dead_reckoning_drift_grows_with_motion_noise():
+    ates = []
+    for scale in [0.25, 1.0, 4.0]:
+        vals = []
+        for seed in range(4):
+            _, rec = slam2d.run_named("dead-reckoning", "loop", seed=seed, overrides={
+                "motion.alpha_rot_rot": 0.0025 * scale, "motion.alpha_rot_trans": 0.0004 * scale,
+                "motion.alpha_trans_trans": 0.0025 * scale})
+            vals.append(rec["ate_rmse_m"])
+        ates.append(np.mean(vals))
+    assert ates[0] < ates[1] < ates[2], ates
+
+
+def test_runner_records_history_and_metrics():
+    log = slam2d.simulate("room", seed=0, steps=30)
+    est = slam2d.make_estimator("dead-reckoning", log_metadata=log.metadata)
+    res = slam2d.run(est, log, rng=np.random.default_rng(0), keep_snapshots=True)
+    assert res.poses.shape == (31, 3) and res.pose_covs.shape == (31, 3, 3)
+    assert len(res.snapshots) == 30
+    for k in ["ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_rad", "steps", "step_ms_mean", "landmarks_estimated"]:
+        assert k in res.metrics
+    # position uncertainty grows monotonically while only odometry is used
+    tr = np.trace(res.pose_covs[:, :2, :2], axis1=1, axis2=2)
+    assert np.all(np.diff(tr) >= -1e-15)
+
+
+def test_dead_reckoning_covariance_is_consistent():
+    """Average NEES of the dead-reckoning pose over Monte-Carlo seeds stays in the chi-square band."""
+    from scipy import stats
+
+    n_runs, steps = 40, 60
+    nees = np.zeros(steps)
+    for seed in range(n_runs):
+        log = slam2d.simulate("room", seed=seed, steps=steps)
+        est = slam2d.make_estimator("dead-reckoning", log_metadata=log.metadata)
+        res = slam2d.run(est, log, rng=np.random.default_rng(seed))
+        err = res.poses[1:] - log.true_poses[1:]
+        err[:, 2] = slam2d.geometry.angle_diff(res.poses[1:, 2], log.true_poses[1:, 2])
+        nees += np.einsum("ti,tij,tj->t", err, np.linalg.inv(res.pose_covs[1:]), err)
+    nees /= n_runs
+    lo, hi = stats.chi2.ppf([0.025, 0.975], 3 * n_runs) / n_runs
+    frac = np.mean((nees > lo) & (nees < hi))
+    assert frac > 0.85, (frac, nees.mean())
+
+
+def test_unknown_names_list_the_valid_ones():
+    with pytest.raises(ValueError, match="valid estimators.*dead-reckoning"):
+        slam2d.run_named("nope")
