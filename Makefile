@@ -18,7 +18,7 @@ run: $(STAMP)
 	$(VENV)/bin/slam2d demo --out out
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check src tests benchmarks
+	$(VENV)/bin/ruff check src tests $(wildcard benchmarks)
 
 typecheck: $(STAMP)
 	$(VENV)/bin/mypy

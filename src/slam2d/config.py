@@ -86,9 +86,9 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
             prefix = f"{tp.__name__}."
             raise ValueError(f"{where}.{msg[len(prefix):]}" if msg.startswith(prefix) else msg) from None
     if origin is tuple:
-        items = [v for v in value.split(",") if v.strip()] if isinstance(value, str) else list(value)
-        args = typing.get_args(tp)
-        inner = args[0] if args else Any
+        items: list[Any] = [v for v in value.split(",") if v.strip()] if isinstance(value, str) else list(value)
+        targs = typing.get_args(tp)
+        inner = targs[0] if targs else Any
         return tuple(_coerce(v, inner, where) for v in items)
     try:
         if tp is bool:
