@@ -1,0 +1,9 @@
+"""Data association: one interface (``associate``), several methods; see ``base.py`` for the contract."""
+
+from slam2d.association.base import CLUTTER as CLUTTER
+from slam2d.association.base import METHODS as METHODS
+from slam2d.association.base import NEW as NEW
+from slam2d.association.base import AssociationConfig as AssociationConfig
+from slam2d.association.base import AssociationResult as AssociationResult
+from slam2d.association.base import Candidates as Candidates
+from slam2d.association.base import associate_known as associate_known

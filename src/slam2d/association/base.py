@@ -1,0 +1,105 @@
+"""The one interface every data-association method implements, and the dispatcher back ends call.
+
+A back end predicts a measurement for each candidate landmark (mean ``z_pred`` and innovation covariance
+``S = H P H^T + R``); the association decides, for each observation, which candidate it is (by the candidate's id),
+or that it starts a new landmark (``NEW``), or that it is clutter to ignore (``CLUTTER``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slam2d.config import check_nonnegative, check_positive, check_probability
+from slam2d.log import Observations
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+#: assignment value: the observation starts a tentative landmark
+NEW = -1
+#: assignment value: the observation is ignored (clutter, a moving object, or too ambiguous to use)
+CLUTTER = -2
+
+METHODS = ("known", "nn", "mahalanobis", "jcbb", "ransac")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class AssociationConfig:
+    """How observations are matched to landmarks."""
+
+    method: Literal["known", "nn", "mahalanobis", "jcbb", "ransac"] = "mahalanobis"
+    """known (oracle ids), nn (Euclidean in measurement space), mahalanobis (individual compatibility with
+    mutual exclusion), jcbb (joint compatibility branch and bound), ransac (consensus over minimal sets)."""
+    gate_probability: float = 0.99
+    """a correct match passes the chi-square gate with this probability."""
+    new_landmark_probability: float = 0.9999
+    """an observation outside this (wider) gate of every candidate starts a new landmark; between the two gates it
+    is treated as ambiguous clutter, so that a slightly-off sighting never duplicates a landmark."""
+    nn_max_distance: float = 1.0
+    """nn only: largest Euclidean distance in measurement space ([m, rad] stacked) accepted as a match."""
+    descriptor_max_distance: float = 0.0
+    """when > 0 and descriptors exist on both sides, pairs farther apart than this (Euclidean) are not matched."""
+    ransac_iterations: int = 100
+    """ransac only: number of minimal-set hypotheses."""
+
+    def __post_init__(self) -> None:
+        from slam2d.config import _coerce  # local: avoid a cycle at import time
+
+        _coerce(self.method, Literal["known", "nn", "mahalanobis", "jcbb", "ransac"], "AssociationConfig.method")
+        check_probability(self, "gate_probability", "new_landmark_probability", open_low=True)
+        if self.gate_probability >= 1.0 or self.new_landmark_probability >= 1.0:
+            raise ValueError("AssociationConfig gate probabilities must be < 1")
+        if self.new_landmark_probability < self.gate_probability:
+            raise ValueError("AssociationConfig.new_landmark_probability must be >= gate_probability")
+        check_positive(self, "nn_max_distance")
+        check_nonnegative(self, "descriptor_max_distance")
+        if self.ransac_iterations < 1:
+            raise ValueError(f"AssociationConfig.ransac_iterations must be >= 1 (got {self.ransac_iterations})")
+
+
+@dataclass(frozen=True)
+class Candidates:
+    """Predicted measurements of the landmarks an observation may belong to.
+
+    Shapes: ids (L,) int, z_pred (L,2) [range, bearing], S (L,2,2) innovation covariances,
+    S_joint (2L,2L) joint innovation covariance of all candidates (landmark-landmark correlations through the pose;
+    needed by ``jcbb`` and ``ransac``; None means "block diagonal of S"), descriptors (L,D) or None.
+    """
+
+    ids: IntArray
+    z_pred: Array
+    S: Array
+    S_joint: Array | None = None
+    descriptors: Array | None = None
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+    @staticmethod
+    def empty() -> Candidates:
+        return Candidates(np.zeros(0, dtype=np.int64), np.zeros((0, 2)), np.zeros((0, 2, 2)))
+
+
+@dataclass(frozen=True)
+class AssociationResult:
+    """Per observation: the candidate id it belongs to, or NEW / CLUTTER; with the statistics of the decision.
+
+    Shapes: assignment (K,) int, d2 (K,) squared Mahalanobis distance to the assigned candidate (nan when none),
+    joint_nis = sum of d2 over matched observations evaluated jointly (with S_joint when given).
+    """
+
+    assignment: IntArray
+    d2: Array
+    joint_nis: float = 0.0
+
+
+def associate_known(observations: Observations, candidates: Candidates) -> AssociationResult:
+    """Oracle association: the source's ids (simulator truth or barcodes). Unseen ids are NEW; negative ids clutter."""
+    ids = observations.landmark_id
+    known = np.isin(ids, candidates.ids)
+    assignment = np.where(known, ids, np.where(ids >= 0, NEW, CLUTTER)).astype(np.int64)
+    return AssociationResult(assignment, np.full(len(ids), np.nan), 0.0)
