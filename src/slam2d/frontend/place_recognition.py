@@ -150,7 +150,7 @@ def _refine(T: Array, pa: Array, ca: Array, pb: Array, cb: Array, iters: int = 6
         g = np.einsum("kji,kjl,kl->i", jt, info, r)
         T = se2.retract(T, -np.linalg.solve(h, g))
     r = se2.transform_points(T, pb) - pa
-    return T, np.linalg.inv(h), float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
+    return T, np.asarray(np.linalg.inv(h), dtype=np.float64), float(np.sqrt(np.mean(np.sum(r * r, axis=1))))
 
 
 def verify_loop(
