@@ -26,14 +26,16 @@ Bad observations (NaN/inf range or bearing, negative range) raise ``ValueError``
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg import blas, solve_triangular
+from scipy.linalg import blas
 
 import slam2d.association as association
+from slam2d import _jacobians
 from slam2d.association import CLUTTER, NEW, AssociationConfig, AssociationResult, Candidates, associate_known
 from slam2d.config import check_nonnegative, check_positive
 from slam2d.filters.base import Estimate
@@ -195,12 +197,13 @@ def ekf_update(mu: Array, P: Array, idx: ArrayLike, H: Array, nu: Array, R: Arra
         L = np.linalg.cholesky(S)
     except np.linalg.LinAlgError:
         raise CovarianceError(f"innovation covariance S is not positive definite: {S.tolist()}") from None
-    At = solve_triangular(L, B, lower=True, check_finite=False)
-    w = solve_triangular(L, np.asarray(nu, dtype=np.float64), lower=True, check_finite=False)
+    l_inv = np.linalg.inv(L)  # m x m (m <= 3): cheaper than a triangular-solve call on the (m, n) block
+    At = l_inv @ B
+    w = l_inv @ np.asarray(nu, dtype=np.float64)
     if not inplace:
         mu, P = mu.copy(), P.copy()
     mu += At.T @ w
-    mu[2] = wrap_angle(mu[2])
+    mu[2] = _wrap(mu[2])
     _low_rank_downdate(P, At)
     if check:
         d = np.diagonal(P)
@@ -216,26 +219,61 @@ def landmark_slice(j: int) -> slice:
     return slice(a, a + 2)
 
 
+def _wrap(a: float) -> float:
+    """Scalar twin of ``wrap_angle`` (same [-pi, pi) convention) for the per-observation hot path."""
+    r = (a + math.pi) % (2.0 * math.pi) - math.pi
+    return r - 2.0 * math.pi if r >= math.pi else r
+
+
+def range_bearing_scalar(pose: Array, landmark: Array) -> tuple[Array, Array]:
+    """[range, bearing] of one landmark and its Jacobian ``[H_pose | H_landmark]`` (2,5), in scalar arithmetic.
+
+    The batched ``models.sensors.range_bearing_jacobians`` costs ~80 us per call from array overheads; this twin is
+    used once per observation update. Its Jacobian is registered for the finite-difference check.
+    """
+    dx, dy = float(landmark[0]) - float(pose[0]), float(landmark[1]) - float(pose[1])
+    q = dx * dx + dy * dy
+    r = math.sqrt(q)
+    z = np.array([r, _wrap(math.atan2(dy, dx) - float(pose[2]))])
+    H = np.array([[-dx / r, -dy / r, 0.0, dx / r, dy / r], [dy / q, -dx / q, -1.0, -dy / q, dx / q]])
+    return z, H
+
+
+def _range_bearing_scalar_value(pose: Array, landmark: Array) -> Array:
+    return range_bearing_scalar(pose, landmark)[0]
+
+
+def _range_bearing_scalar_jacobians(pose: Array, landmark: Array) -> tuple[Array, Array]:
+    H = range_bearing_scalar(pose, landmark)[1]
+    return H[:, :POSE_DIM], H[:, POSE_DIM:]
+
+
+_jacobians.register(_range_bearing_scalar_value, _range_bearing_scalar_jacobians, ("pose", "point"), (1,),
+                    name="slam2d.filters.ekf_slam.range_bearing_scalar")
+
+
 def range_bearing_block(mu: Array, j: int) -> tuple[Array, Array, IntArray]:
     """Predicted measurement of landmark ``j``, its nonzero Jacobian block (2,5) and the state indices it touches."""
     a = POSE_DIM + 2 * int(j)
-    pose, lm = mu[:POSE_DIM], mu[a:a + 2]
-    hp, hl = range_bearing_jacobians(pose, lm)
-    idx = np.array([0, 1, 2, a, a + 1], dtype=np.int64)
-    return range_bearing(pose, lm), np.hstack([hp, hl]), idx
+    z_pred, H = range_bearing_scalar(mu[:POSE_DIM], mu[a:a + 2])
+    return z_pred, H, np.array([0, 1, 2, a, a + 1], dtype=np.int64)
 
 
 def ekf_update_range_bearing(mu: Array, P: Array, j: int, z: ArrayLike, R: Array, *,
                              inplace: bool = False, check: bool = True) -> tuple[Array, Array]:
     """Update with one [range, bearing] observation ``z`` of landmark ``j`` (noise ``R`` (2,2)). O(N^2)."""
     mu = np.asarray(mu, dtype=np.float64)
-    n = _check_state(mu, np.asarray(P))
+    n = mu.shape[0]
+    if P.shape != (n, n) or n < POSE_DIM or (n - POSE_DIM) % 2:
+        _check_state(mu, np.asarray(P))
     if not 0 <= j < (n - POSE_DIM) // 2:
         raise IndexError(f"landmark index {j} out of range 0..{(n - POSE_DIM) // 2 - 1}")
-    z = np.asarray(z, dtype=np.float64)
-    check_observations(z[0], z[1])
+    zz = np.asarray(z, dtype=np.float64)
+    zr, zb = float(zz[0]), float(zz[1])
+    if not (math.isfinite(zr) and math.isfinite(zb) and zr >= 0):
+        check_observations(zr, zb)
     z_pred, H, idx = range_bearing_block(mu, j)
-    nu = np.array([z[0] - z_pred[0], angle_diff(z[1], z_pred[1])])
+    nu = np.array([zr - z_pred[0], _wrap(zb - z_pred[1])])
     return ekf_update(mu, P, idx, H, nu, R, inplace=inplace, check=check)
 
 
