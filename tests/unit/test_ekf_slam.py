@@ -11,6 +11,7 @@ from scipy.optimize import linear_sum_assignment
 
 from slam2d import _jacobians
 from slam2d.association import CLUTTER, NEW, AssociationConfig, Candidates
+from slam2d.filters.base import Estimator
 from slam2d.filters.ekf_slam import (
     EKFSLAM,
     CovarianceError,
@@ -468,6 +469,11 @@ def test_bad_observations_dropped_and_counted_in_drop_mode():
     assert ids.tolist() == [0, 3]
     assert np.all(np.isfinite(mu)) and np.all(np.isfinite(P))
     assert est.estimate().extras["dropped_observations"] == 2
+    assert est.estimate().extras["assoc"].tolist() == [NEW, CLUTTER, CLUTTER, NEW]
+
+
+def test_follows_the_estimator_protocol():
+    assert isinstance(EKFSLAM(), Estimator)
 
 
 def test_bad_odometry_and_gps_raise():

@@ -527,7 +527,12 @@ class EKFSLAM:
             if gps.shape != (2,) or not np.all(np.isfinite(gps)):
                 raise ValueError(f"step {step.index}: gps must be 2 finite numbers, got {step.gps!r}")
             self._guarded(lambda: ekf_update_position(self._mu, self._P, gps, self._R_gps, inplace=True))
-        self._observe(self._clean(step), step.index)
+        obs, keep = self._clean(step)
+        self._observe(obs, step.index)
+        if keep is not None:  # report per original observation; dropped ones as CLUTTER
+            full = np.full(keep.shape[0], CLUTTER, dtype=np.int64)
+            full[keep] = self._last_assoc
+            self._last_assoc = full
 
     def estimate(self) -> Estimate:
         n_l = self._ids.shape[0]
@@ -568,16 +573,17 @@ class EKFSLAM:
             if not e.applied:
                 self._mu, self._P = update()
 
-    def _clean(self, step: Step) -> Observations:
+    def _clean(self, step: Step) -> tuple[Observations, NDArray[np.bool_] | None]:
+        """The step's valid observations, and the mask of kept ones (None when all are valid)."""
         obs = step.observations
         r, b = np.asarray(obs.range_m, dtype=np.float64), np.asarray(obs.bearing_rad, dtype=np.float64)
         bad = ~np.isfinite(r) | ~np.isfinite(b) | (r < 0)
         if not np.any(bad):
-            return obs
+            return obs, None
         if self.config.bad_observation == "raise":
             check_observations(r, b, where=f"step {step.index}: observation")
         self._dropped += int(np.sum(bad))
-        return obs.subset(~bad)
+        return obs.subset(~bad), ~bad
 
     def _candidates(self, obs: Observations) -> tuple[Candidates, IntArray, NDArray[np.bool_]]:
         """Candidates for association, their state indices, and which landmarks are well inside the view."""
