@@ -24,7 +24,10 @@ from slam2d.filters.ekf_slam import (
     ekf_update,
     ekf_update_position,
     ekf_update_range_bearing,
+    odometry_covariance_scalar,
+    odometry_scalar,
     predict_landmarks,
+    range_bearing_scalar,
     remove_landmarks,
     repair_covariance,
     run_association,
@@ -33,8 +36,8 @@ from slam2d.geometry.angles import angle_diff, wrap_angle
 from slam2d.lab.registry import estimator_names, make_config, make_estimator
 from slam2d.lab.runner import run, run_named
 from slam2d.log import Observations, Step
-from slam2d.models.motion import MotionNoise, odometry_covariance, odometry_predict
-from slam2d.models.sensors import SensorConfig, range_bearing, range_bearing_inverse
+from slam2d.models.motion import MotionNoise, odometry_covariance, odometry_predict, odometry_predict_jacobians
+from slam2d.models.sensors import SensorConfig, range_bearing, range_bearing_inverse, range_bearing_jacobians
 from slam2d.sim.simulator import simulate
 from slam2d.testing import numerical_jacobian
 
@@ -113,8 +116,27 @@ def test_registry_holds_every_jacobian_the_filter_uses():
 
     names = {p.name.rsplit(".", 1)[-1] for p in _jacobians.REGISTRY}
     for n in ("odometry_predict", "range_bearing", "range_bearing_inverse", "absolute_position",
-              "range_bearing_scalar"):
+              "range_bearing_scalar", "odometry_scalar"):
         assert n in names  # each is FD-checked by tests/unit/test_geometry.py
+
+
+def test_scalar_twins_equal_the_batched_models():
+    rng = np.random.default_rng(21)
+    noise = MotionNoise()
+    for k in range(50):
+        pose = np.array([*rng.uniform(-5, 5, 2), rng.uniform(-np.pi, np.pi)])
+        u = np.array([*rng.uniform(-1, 1, 2), rng.uniform(-3, 3)]) if k % 5 else np.array([0.0, 0.0, 0.3])
+        new, G, V = odometry_scalar(pose, u)
+        g_ref, v_ref = odometry_predict_jacobians(pose, u)
+        np.testing.assert_allclose(new, odometry_predict(pose, u), atol=1e-14)
+        np.testing.assert_allclose(G, g_ref, atol=1e-14)
+        np.testing.assert_allclose(V, v_ref, atol=1e-14)
+        np.testing.assert_allclose(odometry_covariance_scalar(u, noise), odometry_covariance(u, noise), atol=1e-15)
+        lm = rng.uniform(-8, 8, 2)
+        z, H = range_bearing_scalar(pose, lm)
+        hp, hl = range_bearing_jacobians(pose, lm)
+        np.testing.assert_allclose(z, range_bearing(pose, lm), atol=1e-14)
+        np.testing.assert_allclose(H, np.hstack([hp, hl]), atol=1e-14)
 
 
 @pytest.mark.parametrize("seed", range(4))

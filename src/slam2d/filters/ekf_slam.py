@@ -42,7 +42,7 @@ from slam2d.filters.base import Estimate
 from slam2d.geometry.angles import angle_diff, wrap_angle
 from slam2d.geometry.gaussian import chi2_gate
 from slam2d.log import Observations, Step
-from slam2d.models.motion import MotionNoise, odometry_covariance, odometry_predict, odometry_predict_jacobians
+from slam2d.models.motion import MotionNoise
 from slam2d.models.sensors import (
     SensorConfig,
     absolute_position,
@@ -137,6 +137,50 @@ def ekf_predict_linearized(mu: Array, P: Array, pose_new: Array, G: Array, Q_pos
     return mu, P
 
 
+def odometry_scalar(pose: Array, u: Array) -> tuple[Array, Array, Array]:
+    """``pose (+) u`` and its Jacobians ``G = d/d pose``, ``V = d/d u`` (3,3) in scalar arithmetic.
+
+    Twin of ``models.motion.odometry_predict(_jacobians)`` without the batched-array overheads (this runs once per
+    step); its Jacobians are registered for the finite-difference check.
+    """
+    x, y, th = float(pose[0]), float(pose[1]), float(pose[2])
+    dx, dy, dth = float(u[0]), float(u[1]), float(u[2])
+    c, s = math.cos(th), math.sin(th)
+    new = np.array([x + c * dx - s * dy, y + s * dx + c * dy, _wrap(th + dth)])
+    G = np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
+    V = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return new, G, V
+
+
+def _odometry_scalar_value(pose: Array, u: Array) -> Array:
+    return odometry_scalar(pose, u)[0]
+
+
+def _odometry_scalar_jacobians(pose: Array, u: Array) -> tuple[Array, Array]:
+    _, G, V = odometry_scalar(pose, u)
+    return G, V
+
+
+_jacobians.register(_odometry_scalar_value, _odometry_scalar_jacobians, ("pose", "odometry"), (2,),
+                    name="slam2d.filters.ekf_slam.odometry_scalar")
+
+
+def odometry_covariance_scalar(u: Array, noise: MotionNoise) -> Array:
+    """Scalar twin of ``models.motion.odometry_covariance`` (covariance of u in [dx, dy, dtheta]); a test checks
+    that the two agree."""
+    dx, dy, dth = float(u[0]), float(u[1]), float(u[2])
+    t = math.hypot(dx, dy)
+    r1 = math.atan2(dy, dx) if t > 1e-9 else 0.0
+    r2 = _wrap(dth - r1)
+    r1w = _wrap(r1)
+    v1 = noise.alpha_rot_rot * r1w**2 + noise.alpha_rot_trans * t**2 + noise.min_rot_std_rad**2
+    vt = noise.alpha_trans_trans * t**2 + noise.alpha_trans_rot * (r1w**2 + r2**2) + noise.min_trans_std_m**2
+    v2 = noise.alpha_rot_rot * r2**2 + noise.alpha_rot_trans * t**2 + noise.min_rot_std_rad**2
+    c, s = math.cos(r1), math.sin(r1)
+    J = np.array([[-t * s, c, 0.0], [t * c, s, 0.0], [1.0, 0.0, 1.0]])  # d[dx,dy,dth]/d[rot1,trans,rot2]
+    return (J * np.array([v1, vt, v2])) @ J.T
+
+
 def ekf_predict(mu: Array, P: Array, u: Array, noise: MotionNoise, *, inplace: bool = False) -> tuple[Array, Array]:
     """Odometry prediction ``x <- x (+) u`` with ``Q = V Q_u V^T`` (Probabilistic Robotics sec. 10.2).
 
@@ -146,10 +190,9 @@ def ekf_predict(mu: Array, P: Array, u: Array, noise: MotionNoise, *, inplace: b
     u = np.asarray(u, dtype=np.float64)
     if u.shape != (3,) or not np.all(np.isfinite(u)):
         raise ValueError(f"odometry must be 3 finite numbers [dx, dy, dtheta], got {u!r}")
-    pose = mu[:POSE_DIM]
-    g, v = odometry_predict_jacobians(pose, u)
-    q = v @ odometry_covariance(u, noise) @ v.T
-    return ekf_predict_linearized(mu, P, odometry_predict(pose, u), g, q, inplace=inplace)
+    new, g, v = odometry_scalar(mu[:POSE_DIM], u)
+    q = v @ odometry_covariance_scalar(u, noise) @ v.T
+    return ekf_predict_linearized(mu, P, new, g, q, inplace=inplace)
 
 
 # ---------------------------------------------------------------------------------------------------- update
@@ -163,6 +206,25 @@ def _low_rank_downdate(P: Array, At: Array) -> None:
         P[...] = out.T  # pragma: no cover - BLAS wrapper declined to work in place
     else:
         P -= At.T @ At
+
+
+def _inverse_cholesky(S: Array) -> Array:
+    """``L^-1`` for ``S = L L^T`` (m x m); closed form for m = 2 (the per-observation case). Raises CovarianceError."""
+    if S.shape == (2, 2):
+        a, b, d = float(S[0, 0]), float(S[1, 0]), float(S[1, 1])
+        if a > 0.0:
+            l11 = math.sqrt(a)
+            l21 = b / l11
+            rest = d - l21 * l21
+            if rest > 0.0:
+                l22 = math.sqrt(rest)
+                return np.array([[1.0 / l11, 0.0], [-l21 / (l11 * l22), 1.0 / l22]])
+    else:
+        try:
+            return np.asarray(np.linalg.inv(np.linalg.cholesky(S)))
+        except np.linalg.LinAlgError:
+            pass
+    raise CovarianceError(f"innovation covariance S is not positive definite: {S.tolist()}")
 
 
 def ekf_update(mu: Array, P: Array, idx: ArrayLike, H: Array, nu: Array, R: Array, *,
@@ -179,9 +241,9 @@ def ekf_update(mu: Array, P: Array, idx: ArrayLike, H: Array, nu: Array, R: Arra
     idx = np.asarray(idx, dtype=np.intp)
     rows = P[idx, :]
     if check:
-        scale = max(1.0, float(np.max(np.abs(rows))))
-        if not np.all(np.isfinite(rows)):
+        if not math.isfinite(float(np.sum(rows))):
             raise CovarianceError(f"covariance rows {idx.tolist()} are not finite")
+        scale = max(1.0, float(np.max(np.abs(rows))))
         asym = float(np.max(np.abs(rows - P[:, idx].T)))
         if asym > 1e-9 * scale:
             raise CovarianceError(f"covariance is not symmetric in rows {idx.tolist()} (max |P - P^T| = {asym:.3g})")
@@ -192,12 +254,7 @@ def ekf_update(mu: Array, P: Array, idx: ArrayLike, H: Array, nu: Array, R: Arra
                                   f"(smallest eigenvalue {eig_min:.3g})")
     B = H @ rows
     S = B[:, idx] @ H.T + R
-    S = 0.5 * (S + S.T)
-    try:
-        L = np.linalg.cholesky(S)
-    except np.linalg.LinAlgError:
-        raise CovarianceError(f"innovation covariance S is not positive definite: {S.tolist()}") from None
-    l_inv = np.linalg.inv(L)  # m x m (m <= 3): cheaper than a triangular-solve call on the (m, n) block
+    l_inv = _inverse_cholesky(0.5 * (S + S.T))
     At = l_inv @ B
     w = l_inv @ np.asarray(nu, dtype=np.float64)
     if not inplace:
