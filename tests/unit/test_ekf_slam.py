@@ -591,3 +591,39 @@ def test_sensor_config_is_used_for_candidates():
                observations=Observations(np.array([2.0]), np.array([0.0]), np.array([-1])))
     est.step(far)
     assert est.state[2].tolist() == [0, 1, 2]
+
+
+def test_kernels_reject_bad_measurements():
+    rng = np.random.default_rng(13)
+    mu, P = random_state(rng, 2)
+    for z in ([np.nan, 0.1], [1.0, np.inf], [-1.0, 0.0]):
+        with pytest.raises(ValueError, match="range_m"):
+            ekf_update_range_bearing(mu, P, 0, np.array(z), R_RB)
+    with pytest.raises(ValueError, match="GPS"):
+        ekf_update_position(mu, P, np.array([np.nan, 1.0]), np.eye(2))
+    with pytest.raises(ValueError, match="odometry"):
+        ekf_predict(mu, P, np.array([0.1, np.nan, 0.0]), MotionNoise())
+    with pytest.raises(IndexError):
+        ekf_update_range_bearing(mu, P, 2, np.array([1.0, 0.0]), R_RB)
+
+
+def test_post_update_check_flags_a_negative_variance_and_the_estimator_repairs_it():
+    """P indefinite outside the rows an update reads: the pre-checks pass, the update drives a variance negative,
+    the post-check raises (applied=True); the estimator's repair rule then restores a valid covariance."""
+    mu = np.array([0.0, 0.0, 0.0, 2.0, 0.0, 5.0, 5.0])
+    P = np.eye(7) * 0.1
+    P[5, 5] = 1e-6
+    P[0, 5] = P[5, 0] = 0.05  # |corr| >> 1: P is indefinite, the touched block (pose + landmark 0) is not
+    z = np.array([1.5, 0.0])
+    with pytest.raises(CovarianceError, match="must be finite and >= 0") as info:
+        ekf_update_range_bearing(mu, P, 0, z, R_RB)
+    assert info.value.applied
+    est = EKFSLAM(EKFConfig(confirm_after=1, tentative_max_misses=0))
+    est.reset(np.zeros(3), rng=np.random.default_rng(0))
+    est._mu, est._P, est._ids = mu.copy(), P.copy(), np.array([0, 1])
+    est._hits, est._misses = np.ones(2, dtype=np.int64), np.zeros(2, dtype=np.int64)
+    est.step(Step(index=1, time_s=0.2, dt_s=0.2, odometry=np.zeros(3),
+                  observations=Observations(np.array([1.5]), np.array([0.0]), np.array([0]))))
+    mu2, P2, _ = est.state
+    assert est.estimate().extras["covariance_repairs"] == 1
+    assert np.array_equal(P2, P2.T) and np.linalg.eigvalsh(P2)[0] > 0

@@ -360,9 +360,8 @@ def augment_linearized(mu: Array, P: Array, l_new: Array, G_r: Array, G_z: Array
     gr = G_r.reshape(2 * k, POSE_DIM)
     cross = gr @ P[:POSE_DIM, :]  # (2k, n)
     new = gr @ P[:POSE_DIM, :POSE_DIM] @ gr.T
-    blocks = G_z @ R @ np.swapaxes(G_z, -1, -2)  # (k,2,2)
-    for i in range(k):  # k new landmarks of one scan: a handful of 2x2 blocks
-        new[2 * i:2 * i + 2, 2 * i:2 * i + 2] += blocks[i]
+    ar = np.arange(k)
+    new.reshape(k, 2, k, 2)[ar, :, ar, :] += G_z @ R @ np.swapaxes(G_z, -1, -2)  # measurement noise: own blocks
     P_new = np.empty((n + 2 * k, n + 2 * k))
     P_new[:n, :n] = P
     P_new[n:, :n] = cross
@@ -434,11 +433,10 @@ def predict_landmarks(mu: Array, P: Array, js: ArrayLike, R: Array, *,
     cross = np.einsum("iab,bjc,jdc->iajd", hp, prl, hl)
     sj = (np.einsum("iab,bc,jdc->iajd", hp, prr, hp) + cross + cross.transpose(2, 3, 0, 1)
           + np.einsum("iab,ibjc,jdc->iajd", hl, pll, hl))
+    ar = np.arange(n_l)
+    sj[ar, :, ar, :] = S  # diagonal blocks (they carry the measurement noise)
     sj = sj.reshape(2 * n_l, 2 * n_l)
-    sj = 0.5 * (sj + sj.T)
-    for i in range(n_l):  # the measurement noise sits on the 2x2 diagonal blocks
-        sj[2 * i:2 * i + 2, 2 * i:2 * i + 2] = S[i]
-    return z_pred, S, sj
+    return z_pred, S, 0.5 * (sj + sj.T)
 
 
 def _fallback_mahalanobis(observations: Observations, candidates: Candidates,
