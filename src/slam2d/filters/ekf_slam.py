@@ -9,8 +9,9 @@ Costs (n = 3 + 2N):
 * one observation update reads the 5 rows of P its sparse 2x5 Jacobian touches (P is symmetric, so rows are the
   columns ``P H^T`` needs), builds ``B = H P[idx, :]`` (m, n), ``S = B[:, idx] H^T + R`` and applies the rank-m
   symmetric update ``P <- P - A A^T`` with ``A = B^T L^-T`` (``S = L L^T``). With the optimal gain this equals the
-  Joseph form ``(I-KH) P (I-KH)^T + K R K^T`` exactly (a test checks it against the dense Joseph form) and it keeps
-  P bit-for-bit symmetric. It is O(n^2): one BLAS ``dgemm`` pass over P in place; never a dense n x n product;
+  Joseph form ``(I-KH) P (I-KH)^T + K R K^T`` exactly (a test checks it against the dense Joseph form) and keeps
+  P symmetric (bit-for-bit in the tests: entry (i,j) and (j,i) are the same products). It is O(n^2): one BLAS
+  ``dgemm`` pass over P in place; never a dense n x n product;
 * augmentation (:func:`augment_state`) and removal copy P once: O(n^2).
 
 Numerical guard (documented rule, see :class:`CovarianceError`): before an update the rows that the update reads
@@ -268,12 +269,6 @@ def ekf_update(mu: Array, P: Array, idx: ArrayLike, H: Array, nu: Array, R: Arra
             k = int(np.argmin(np.where(np.isfinite(d), d, -np.inf)))
             raise CovarianceError(f"update left P[{k},{k}] = {d[k]!r} (must be finite and >= 0)", applied=True)
     return mu, P
-
-
-def landmark_slice(j: int) -> slice:
-    """Rows of landmark ``j`` in the state."""
-    a = POSE_DIM + 2 * int(j)
-    return slice(a, a + 2)
 
 
 def _wrap(a: float) -> float:
