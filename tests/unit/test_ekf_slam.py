@@ -627,3 +627,22 @@ def test_post_update_check_flags_a_negative_variance_and_the_estimator_repairs_i
     mu2, P2, _ = est.state
     assert est.estimate().extras["covariance_repairs"] == 1
     assert np.array_equal(P2, P2.T) and np.linalg.eigvalsh(P2)[0] > 0
+
+
+@pytest.mark.parametrize("limit", [0, 3, 5])
+def test_confirmed_landmark_missed_in_view_is_removed_after_the_limit(limit):
+    est = EKFSLAM(EKFConfig(association=AssociationConfig(method="mahalanobis"), confirm_after=2,
+                            confirmed_max_misses=limit))
+    est.reset(np.zeros(3), rng=np.random.default_rng(0))
+    seen = Observations(np.array([2.0, 6.0]), np.array([0.0, 1.0]), np.array([-1, -1]))
+    for i in (1, 2):
+        est.step(Step(index=i, time_s=0.2 * i, dt_s=0.2, odometry=np.zeros(3), observations=seen))
+    assert len(est.estimate().landmarks) == 2
+    # keep seeing the second landmark only; the first one is in view (2 m ahead) but never matched again
+    only_second = seen.subset(np.array([False, True]))
+    for k in range(1, 8):
+        est.step(Step(index=2 + k, time_s=0.2 * (2 + k), dt_s=0.2, odometry=np.zeros(3), observations=only_second))
+        mu, P, ids = est.state
+        expect = [1] if limit and k >= limit else [0, 1]
+        assert ids.tolist() == expect, (k, ids)
+        assert mu.shape == (3 + 2 * len(expect),) and P.shape == (mu.size, mu.size)

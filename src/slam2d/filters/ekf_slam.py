@@ -498,8 +498,9 @@ class EKFConfig:
     tentative_max_misses: int = 3
     """a tentative landmark predicted well inside the sensor's view this many consecutive steps without a match is
     removed (0: never)."""
-    confirmed_max_misses: int = 0
-    """the same rule for confirmed landmarks (0: never remove a confirmed landmark)."""
+    confirmed_max_misses: int = 5
+    """the same rule for confirmed landmarks (0: never remove a confirmed landmark); removes e.g. landmarks made
+    from moving objects."""
     view_margin_m: float = 0.5
     """"well inside the view" means predicted range <= max_range_m - view_margin_m (and inside the field of view)."""
     candidate_margin_m: float = 1.0
