@@ -180,7 +180,8 @@ class Problem:
         """Joint innovation covariance between candidate lists ``rows`` and ``cols``. Shapes: -> (2R, 2C)."""
         if self.S_joint is not None:
             n = self.num_candidates
-            blk = self.S_joint.reshape(n, 2, n, 2)[np.ix_(rows, [0, 1], cols, [0, 1])]
+            two = np.arange(2)
+            blk = self.S_joint.reshape(n, 2, n, 2)[np.ix_(rows, two, cols, two)]
             return blk.reshape(2 * len(rows), 2 * len(cols))
         out = np.zeros((len(rows), 2, len(cols), 2))
         same = rows[:, None] == cols[None, :]
