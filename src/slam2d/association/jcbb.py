@@ -15,21 +15,26 @@ Unlike the textbook recursion this does not require every *prefix* of H (in obse
 compatible, so the answer does not depend on the order of the observations. The pruning is still strong because
 the joint NIS never decreases when a pair is added (a Schur-complement identity), which gives three bounds:
 
-* count: a branch whose pairs plus the remaining observations that still have an unused compatible candidate cannot
-  reach the best pair count so far is cut (the usual JCBB bound);
+* count: a branch whose pairs plus an upper bound on the pairs still possible cannot reach the best pair count so
+  far is cut (the usual JCBB bound, tightened: per connected component of the compatibility graph, at most
+  min(open observations, open candidates) more pairs);
 * NIS: a branch that can at most tie the best count is cut once its NIS exceeds the best NIS;
 * joint gate: a branch is cut once its NIS exceeds the chi-square threshold of the largest hypothesis it can grow to.
 
-Each node keeps the inverse Cholesky factor of ``C_H`` so a child costs O(n^2) matrix products; all children of a
-node are evaluated together in one batch.
+Each node keeps the predictions of every candidate conditioned on its hypothesis (see ``_Node``), so all children
+of a node are scored in one vectorised step and a child costs one (2 x 2n)(2n x 2A) product. Only matrix products
+are used in the search: LAPACK solves on tiny matrices are slow when OpenBLAS threads compete for the cores.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components
 
 from slam2d.association.gating import Problem, joint_thresholds
 
@@ -40,15 +45,19 @@ BoolArray = NDArray[np.bool_]
 
 @dataclass
 class _Search:
-    """Mutable state of one branch-and-bound run (kept out of the recursion's arguments)."""
+    """Mutable state of one branch-and-bound run (kept out of the recursion's arguments).
 
-    ic: BoolArray  # (K', L) rows in search order
-    nu: Array  # (K', L, 2)
-    cb: Array  # (L, 2, L, 2) joint covariance blocks
-    S: Array  # (L, 2, 2)
+    Candidates are renumbered to the A "active" ones (individually compatible with some observation); rows are
+    the observations with at least one compatible candidate, in search order.
+    """
+
+    ic: BoolArray  # (K', A)
+    nu: Array  # (K', A, 2) innovations
+    cov: Array  # (2A, 2A) joint innovation covariance of the active candidates
     thr: Array  # (K'+1,) joint gates
-    order: IntArray  # (K',) original observation index of each search row
-    num_candidates: int
+    row_comp: IntArray  # (K',) connected component (of the compatibility graph) of each row
+    col_comp: IntArray  # (A,) ... of each candidate
+    num_comp: int
     max_nodes: int
     nodes: int = 0
     truncated: bool = False
@@ -56,118 +65,166 @@ class _Search:
     best_nis: float = 0.0
     best_key: tuple[int, ...] = ()
     best_pairs: list[tuple[int, int]] = field(default_factory=list)
+    key_of: Callable[[list[tuple[int, int]]], tuple[int, ...]] | None = None
 
-    def key(self, pairs: list[tuple[int, int]], num_obs: int) -> tuple[int, ...]:
-        a = [self.num_candidates] * num_obs
-        for row, j in pairs:
-            a[int(self.order[row])] = j
-        return tuple(a)
+    def potential(self, open_pairs: BoolArray, rows: IntArray) -> tuple[int, BoolArray]:  # noqa: D417
+        """Upper bound on how many more pairs can be made from ``open_pairs`` (rows ``rows`` x all candidates): per
+        connected component of the compatibility graph, the smaller of its open rows and open candidates. Also
+        returns which rows are "tight" (in a component with no more open rows than open candidates, so leaving one
+        of them unmatched lowers the bound by one). Shapes: open_pairs (R, A), rows (R,) -> int, (R,) bool."""
+        rows_ok = open_pairs.any(axis=1)
+        if not rows_ok.any():
+            return 0, rows_ok
+        cols_ok = open_pairs.any(axis=0)
+        comp = self.row_comp[rows]
+        r = np.bincount(comp[rows_ok], minlength=self.num_comp)
+        c = np.bincount(self.col_comp[cols_ok], minlength=self.num_comp)
+        return int(np.minimum(r, c).sum()), rows_ok & (r[comp] <= c[comp])
 
-    def potential(self, row: int, used: BoolArray) -> int:
-        """Upper bound on how many more pairs rows ``row..`` can add: rows with an unused compatible candidate."""
-        if row >= self.ic.shape[0]:
-            return 0
-        return int(np.count_nonzero((self.ic[row:] & ~used).any(axis=1)))
 
+@dataclass
+class _Node:
+    """A hypothesis H and everything needed to extend it cheaply.
 
-def _children(st: _Search, row: int, js: IntArray, cols: IntArray, linv: Array, y: Array) -> tuple[Array, Array]:
-    """Evaluate adding pair (row, j) for every j in ``js`` to the hypothesis whose candidates are ``cols``.
-
-    ``linv`` is the inverse Cholesky factor of C_H and ``y = linv nu_H`` (so NIS_H = |y|^2). For each child the
-    joint factor grows by one 2x2 block row: with W = linv C_Hj, the Schur complement is S_j - W^T W and the
-    whitened new innovation is its Cholesky factor applied to nu_j - W^T y. Only matrix products are used: LAPACK
-    triangular solves on tiny matrices are slow when OpenBLAS threads compete for the cores.
-    Returns (inc (m,) NIS increments, +inf where round-off broke definiteness; packed (m,2,2n+3): the child's new
-    block row of ``linv`` (columns :-1) and its two new entries of ``y`` (last column)).
-    Shapes: js (m,), cols (n,), linv (2n,2n), y (2n,).
+    With ``Lc`` the Cholesky factor of C_H: ``w = Lc^-1 C_H,all`` (2n, 2A) and ``y = Lc^-1 nu_H`` (2n,), so
+    NIS_H = |y|^2; for every active candidate j the prediction conditioned on H has ``shift[j] = w_j^T y`` and
+    covariance ``schur[j] = S_j - w_j^T w_j``. Adding a pair appends one 2-row block to w and y and applies a
+    rank-2 update to shift and schur; no matrix is ever factorised again.
     """
-    m, n = len(js), len(cols)
-    nu = st.nu[row, js]  # (m, 2)
-    schur = st.S[js].copy()
-    if n:
-        blk = st.cb[js[:, None], :, cols[None, :], :]  # (m, n, 2, 2): C[(j,a),(k,b)]
-        rhs = blk.transpose(1, 3, 0, 2).reshape(2 * n, 2 * m)
-        w = (linv @ rhs).reshape(2 * n, m, 2).transpose(1, 0, 2)  # (m, 2n, 2)
-        schur -= np.einsum("mpa,mpb->mab", w, w)
-        nu = nu - np.einsum("mpa,p->ma", w, y)
-    else:
-        w = np.zeros((m, 0, 2))
-    a, b, d = schur[:, 0, 0], schur[:, 1, 0], schur[:, 1, 1]
+
+    pairs: list[tuple[int, int]]
+    w: Array
+    y: Array
+    schur: Array  # (A, 2, 2)
+    shift: Array  # (A, 2)
+    nis: float
+
+
+def _chol2(s: Array) -> tuple[Array, Array, Array, Array]:
+    """Inverse Cholesky factors of 2x2 SPD matrices: (i11, i21, i22) with L^-1 = [[i11, 0], [i21, i22]], and ok.
+
+    Shapes: (m,2,2) -> four (m,) arrays; ``ok`` is False where round-off broke positive definiteness."""
+    a, b, d = s[:, 0, 0], s[:, 1, 0], s[:, 1, 1]
     with np.errstate(invalid="ignore", divide="ignore"):
         l11 = np.sqrt(a)
         l21 = b / l11
         l22 = np.sqrt(d - l21 * l21)
-        # inverse of [[l11, 0], [l21, l22]]
         i11, i22 = 1.0 / l11, 1.0 / l22
         i21 = -l21 * i11 * i22
-    z1 = i11 * nu[:, 0]
-    z2 = i21 * nu[:, 0] + i22 * nu[:, 1]
-    inc = z1 * z1 + z2 * z2
-    # round-off can make a Schur complement of a (checked) positive definite matrix lose definiteness: cut it
-    inc = np.where(np.isfinite(inc) & (a > 0), inc, np.inf)
-    linv22 = np.zeros((m, 2, 2))
-    linv22[:, 0, 0], linv22[:, 1, 0], linv22[:, 1, 1] = i11, i21, i22
-    # new block row of the inverse factor: [-L22^-1 W^T linv, L22^-1]
-    left = -np.einsum("mab,mpb,pq->maq", linv22, w, linv) if n else np.zeros((m, 2, 0))
-    new_rows = np.concatenate([left, linv22], axis=2)  # (m, 2, 2n+2)
-    return inc, np.concatenate([new_rows, np.stack([z1, z2], axis=-1)[:, :, None]], axis=2)
+    ok = (a > 0) & np.isfinite(i11) & np.isfinite(i21) & np.isfinite(i22)
+    return i11, i21, i22, ok
 
 
-def _visit(st: _Search, row: int, pairs: list[tuple[int, int]], used: BoolArray, linv: Array, y: Array,
-           nis: float) -> None:
+def _extend(st: _Search, node: _Node, row: int, j: int, linv22: Array, z: Array, nis: float) -> _Node:
+    """The child hypothesis H + (row, j), given the 2x2 inverse factor of its Schur block and whitened innovation."""
+    n2 = node.w.shape[0]
+    block = st.cov[2 * j:2 * j + 2]  # (2, 2A): C_j,all
+    if n2:
+        block = block - node.w[:, 2 * j:2 * j + 2].T @ node.w
+    w_new = linv22 @ block  # (2, 2A)
+    wn = w_new.reshape(2, -1, 2)
+    schur = node.schur - np.einsum("ajb,ajc->jbc", wn, wn)
+    shift = node.shift + np.einsum("ajb,a->jb", wn, z)
+    return _Node([*node.pairs, (row, j)], np.vstack([node.w, w_new]), np.concatenate([node.y, z]), schur, shift,
+                 nis)
+
+
+def _visit(st: _Search, node: _Node, used: BoolArray, decided: BoolArray) -> None:
+    """Search every completion of ``node``'s hypothesis: rows not ``decided`` may still be paired with candidates
+    not ``used``."""
     st.nodes += 1
     if st.nodes > st.max_nodes:
         st.truncated = True
         return
-    n = len(pairs)
-    here = st.potential(row, used)
-    if here == 0:
-        _leaf(st, pairs, nis)
+    n = len(node.pairs)
+    rows = np.flatnonzero(~decided)
+    open_pairs = st.ic[rows] & ~used
+    # NIS increment of every open pair, conditioned on H (vectorised over rows x candidates)
+    i11, i21, i22, ok = _chol2(node.schur)
+    res = st.nu[rows] - node.shift[None]  # (R, A, 2)
+    with np.errstate(invalid="ignore"):  # used candidates have a zero Schur block: their values are masked below
+        z1 = i11 * res[..., 0]
+        z2 = i21 * res[..., 0] + i22 * res[..., 1]
+    open_pairs &= ok
+    inc = np.where(open_pairs, z1 * z1 + z2 * z2, np.inf)
+    # a pair can only join a completion if H plus that pair alone stays under the largest gate the completion could
+    # face (the NIS of a superset is never smaller), and under the incumbent's NIS when the count can only tie;
+    # removing pairs lowers the bound on the count, which lowers the gate: iterate to a fixed point
+    pot, tight = st.potential(open_pairs, rows)
+    while pot:
+        limit = st.thr[n + pot] - node.nis
+        if n + pot == st.best_n:
+            limit = min(limit, st.best_nis - node.nis)
+        feasible = open_pairs & (inc <= limit)
+        new_pot, new_tight = st.potential(feasible, rows)
+        open_pairs = feasible
+        if new_pot == pot:
+            tight = new_tight
+            break
+        pot, tight = new_pot, new_tight
+    if pot == 0:
+        _leaf(st, node)
         return
-    # skip rows with nothing left to choose: they can only be "unmatched"
-    while not (st.ic[row] & ~used).any():
-        row += 1
-    after = st.potential(row + 1, used)
-    js = np.flatnonzero(st.ic[row] & ~used)
-    bound = n + 1 + after
-    if bound >= st.best_n:
-        cols = np.array([j for _, j in pairs], dtype=np.int64)
-        inc, packed = _children(st, row, js, cols, linv, y)
-        child_nis = nis + inc
-        for t in np.argsort(child_nis, kind="stable"):
-            cn = float(child_nis[t])
-            if st.truncated:
-                return
-            # re-test: the best may have improved while an earlier sibling was searched
-            if cn > st.thr[bound] or bound < st.best_n or (bound == st.best_n and cn > st.best_nis):
-                continue
-            j = int(js[t])
-            k2 = 2 * n
-            child = np.zeros((k2 + 2, k2 + 2))
-            child[:k2, :k2] = linv
-            child[k2:, :] = packed[t, :, :-1]
-            used[j] = True
-            _visit(st, row + 1, [*pairs, (row, j)], used, child, np.concatenate([y, packed[t, :, -1]]), cn)
-            used[j] = False
-    if st.truncated:
+    slack = n + pot - st.best_n
+    if slack < 0:
         return
-    # star branch: this observation stays unmatched
-    bound = n + after
-    if bound > st.best_n or (bound == st.best_n and nis <= st.best_nis):
-        if nis <= st.thr[bound]:
-            _visit(st, row + 1, pairs, used, linv, y, nis)
+    # lower bound on the final NIS: at most `slack` tight rows may stay unmatched, and each matched row adds at
+    # least its smallest single-pair increment given H, so the (slack+1)-th largest of the tight rows' minima is a
+    # floor on the increment
+    inc = np.where(open_pairs, inc, np.inf)
+    tight_min = np.sort(inc.min(axis=1)[tight])[::-1]
+    floor = node.nis + (float(tight_min[slack]) if slack < len(tight_min) else 0.0)
+    if floor > st.thr[n + pot] or (slack == 0 and floor > st.best_nis):
+        return
+    # branch on the most constrained row (fewest usable pairs; ties: search order)
+    counts = open_pairs.sum(axis=1)
+    k = int(np.argmin(np.where(counts > 0, counts, np.iinfo(np.int64).max)))
+    row = int(rows[k])
+    rest = np.arange(len(rows)) != k
+    after, _ = st.potential(open_pairs[rest], rows[rest])
+    js = np.flatnonzero(open_pairs[k])
+    child_nis = node.nis + inc[k, js]
+    srt = np.argsort(child_nis, kind="stable")
+    # branch order (it never changes the answer, only how soon a strong incumbent prunes the rest): children that
+    # are jointly compatible at their own size first (the textbook JCBB dive), then "unmatched", then the others
+    n_jc = int(np.count_nonzero(child_nis[srt] <= st.thr[n + 1]))
+    decided[row] = True
+    for pos, t in enumerate(srt):
+        if pos == n_jc:
+            _star(st, node, used, decided, n + after)
+        if st.truncated:
+            break
+        bound = n + 1 + after
+        cn = float(child_nis[t])
+        # re-test: the incumbent may have improved while an earlier branch was searched
+        if cn > st.thr[bound] or bound < st.best_n or (bound == st.best_n and cn > st.best_nis):
+            continue
+        j = int(js[t])
+        linv22 = np.array([[i11[j], 0.0], [i21[j], i22[j]]])
+        child = _extend(st, node, row, j, linv22, np.array([z1[k, j], z2[k, j]]), cn)
+        used[j] = True
+        _visit(st, child, used, decided)
+        used[j] = False
+    if n_jc == len(srt) and not st.truncated:
+        _star(st, node, used, decided, n + after)
+    decided[row] = False
 
 
-def _leaf(st: _Search, pairs: list[tuple[int, int]], nis: float) -> None:
-    n = len(pairs)
-    if nis > st.thr[n]:
+def _star(st: _Search, node: _Node, used: BoolArray, decided: BoolArray, bound: int) -> None:
+    """The branch where the row just marked decided stays unmatched."""
+    if (bound > st.best_n or (bound == st.best_n and node.nis <= st.best_nis)) and node.nis <= st.thr[bound]:
+        _visit(st, node, used, decided)
+
+
+def _leaf(st: _Search, node: _Node) -> None:
+    n, nis = len(node.pairs), node.nis
+    if nis > st.thr[n] or n < st.best_n or (n == st.best_n and nis > st.best_nis):
         return
-    if n < st.best_n or (n == st.best_n and nis > st.best_nis):
-        return
-    key = st.key(pairs, len(st.best_key))
+    assert st.key_of is not None
+    key = st.key_of(node.pairs)
     if n == st.best_n and nis == st.best_nis and key >= st.best_key:
         return
-    st.best_n, st.best_nis, st.best_key, st.best_pairs = n, nis, key, list(pairs)
+    st.best_n, st.best_nis, st.best_key, st.best_pairs = n, nis, key, list(node.pairs)
 
 
 def jcbb(problem: Problem, probability: float, max_nodes: int) -> tuple[IntArray, IntArray, float, int, bool]:
@@ -182,23 +239,33 @@ def jcbb(problem: Problem, probability: float, max_nodes: int) -> tuple[IntArray
     empty = np.zeros(0, dtype=np.int64)
     if len(order) == 0:
         return empty, empty, 0.0, 1, False
-    if problem.S_joint is not None:
-        cb = problem.S_joint.reshape(n_cand, 2, n_cand, 2)
-        active = np.flatnonzero(problem.ic.any(axis=0))
-        try:  # the branch and bound assumes S_joint is positive definite where it is used
-            np.linalg.cholesky(problem.joint_block(active, active))
-        except np.linalg.LinAlgError:
-            raise ValueError("Candidates.S_joint is not positive definite on the individually compatible "
-                             f"candidates {problem.ids[active].tolist()}") from None
-    else:
-        cb = np.zeros((n_cand, 2, n_cand, 2))
-        cb[np.arange(n_cand), :, np.arange(n_cand), :] = problem.S
-    st = _Search(ic=problem.ic[order], nu=problem.nu[order], cb=cb, S=problem.S,
-                 thr=joint_thresholds(probability, len(order)), order=order, num_candidates=n_cand,
-                 max_nodes=max_nodes)
-    st.best_key = tuple([n_cand] * k)
-    _visit(st, 0, [], np.zeros(n_cand, dtype=bool), np.zeros((0, 0)), np.zeros(0), 0.0)
+    act = np.flatnonzero(problem.ic.any(axis=0))
+    cov = problem.joint_block(act, act)
+    try:  # the search relies on C being positive definite where it is used
+        np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        raise ValueError("Candidates.S_joint is not positive definite on the individually compatible candidates "
+                         f"{problem.ids[act].tolist()}") from None
+    ic = problem.ic[np.ix_(order, act)]
+    # connected components of the bipartite compatibility graph (rows first, then candidates)
+    kk, a = ic.shape
+    graph = csr_matrix((np.ones(int(ic.sum())), np.nonzero(ic)), shape=(kk, a))
+    full = csr_matrix(np.block([[np.zeros((kk, kk)), graph.toarray()], [graph.toarray().T, np.zeros((a, a))]]))
+    num_comp, labels = connected_components(full, directed=False)
+
+    def key_of(pairs: list[tuple[int, int]]) -> tuple[int, ...]:
+        out = [n_cand] * k
+        for r, j in pairs:
+            out[int(order[r])] = int(act[j])
+        return tuple(out)
+
+    st = _Search(ic=ic, nu=problem.nu[np.ix_(order, act)], cov=cov, thr=joint_thresholds(probability, kk),
+                 row_comp=labels[:kk].astype(np.int64), col_comp=labels[kk:].astype(np.int64), num_comp=num_comp,
+                 max_nodes=max_nodes, best_key=tuple([n_cand] * k), key_of=key_of)
+    s_act = cov.reshape(a, 2, a, 2)[np.arange(a), :, np.arange(a), :]
+    root = _Node([], np.zeros((0, 2 * a)), np.zeros(0), s_act.copy(), np.zeros((a, 2)), 0.0)
+    _visit(st, root, np.zeros(a, dtype=bool), np.zeros(kk, dtype=bool))
     obs = np.array([order[r] for r, _ in st.best_pairs], dtype=np.int64)
-    cand = np.array([j for _, j in st.best_pairs], dtype=np.int64)
+    cand = np.array([act[j] for _, j in st.best_pairs], dtype=np.int64)
     srt = np.argsort(obs)
     return obs[srt], cand[srt], st.best_nis, st.nodes, st.truncated

@@ -4,6 +4,9 @@
 * ``loop``: a 4 m wide corridor around a 60 x 40 m block: a 200 m loop that returns to its start.
 * ``warehouse``: identical shelf rows whose posts form repeating landmark patterns, with forklifts driving the aisles.
 * ``grid``: landmarks on a regular grid (any count) and a circular drive, for scaling studies.
+* ``scramble``: tight clusters of landmarks along a loop, neighbours 0.2-0.6 m apart (a few sensor standard
+  deviations, often inside one another's 99 % gate), so that a small pose error confuses nearest neighbour; the
+  data-association test bed.
 """
 
 from __future__ import annotations
@@ -190,6 +193,40 @@ def _grid(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
     return Layout(world, np.roll(route, -1, axis=0), start)
 
 
+def _cluster_points(rng: np.random.Generator, centre: Array, n: int, radius_m: float, min_sep_m: float) -> Array:
+    """``n`` points in a disc around ``centre``, pairwise at least ``min_sep_m`` apart (greedy rejection)."""
+    pts: list[Array] = []
+    while len(pts) < n:
+        r = radius_m * np.sqrt(rng.random())
+        a = rng.uniform(-np.pi, np.pi)
+        p = centre + r * np.array([np.cos(a), np.sin(a)])
+        if all(np.hypot(*(p - q)) >= min_sep_m for q in pts):
+            pts.append(p)
+        elif len(pts) and rng.random() < 0.002:  # the disc is full: start over with what fits (never loops forever)
+            pts = []
+    return np.array(pts)
+
+
+def _scramble(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
+    # a 16 x 10 m loop; clusters of 6 landmarks sit 2.5 m off the route, alternately inside and outside
+    route = np.array([[4.0, 4.0], [20.0, 4.0], [20.0, 14.0], [4.0, 14.0]])
+    n = int(cfg.landmarks or 48)
+    per_cluster = 6
+    n_clusters = int(np.ceil(n / per_cluster))
+    perimeter = 2 * (16.0 + 10.0)
+    s = (np.arange(n_clusters) + 0.5) * perimeter / n_clusters
+    corners, lengths = route, np.array([16.0, 10.0, 16.0, 10.0])
+    k = np.minimum(np.searchsorted(np.cumsum(lengths), s, side="right"), 3)
+    start = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])[k]
+    d = (np.roll(corners, -1, axis=0) - corners)[k] / lengths[k, None]
+    normal = np.stack([-d[:, 1], d[:, 0]], axis=-1)  # points into the loop
+    side = np.where(np.arange(n_clusters) % 2 == 0, 2.5, -2.5)
+    centres = corners[k] + d * (s - start)[:, None] + normal * side[:, None]
+    lm = np.vstack([_cluster_points(rng, c, per_cluster, 0.7, 0.2) for c in centres])[:n]
+    world = World(lm, np.arange(n), np.zeros((0, 4)), bounds=(0.0, 0.0, 24.0, 18.0))
+    return Layout(world, route, np.array([4.0, 4.0, 0.0]))
+
+
 SCENARIOS: dict[str, ScenarioSpec] = {
     "room": ScenarioSpec("room", "20 x 14 m room, ~30 landmarks, two laps", dict(steps=450, dt_s=0.2, speed_mps=1.0,
                                                                                   landmarks=30), _room),
@@ -199,6 +236,8 @@ SCENARIOS: dict[str, ScenarioSpec] = {
                               dict(steps=600, dt_s=0.2, speed_mps=1.2, moving_objects=3), _warehouse),
     "grid": ScenarioSpec("grid", "landmarks on a grid (any count), circular drive; for scaling",
                          dict(steps=300, dt_s=0.2, speed_mps=1.5, landmarks=100), _grid),
+    "scramble": ScenarioSpec("scramble", "clusters of landmarks closer than the association gates; data association",
+                             dict(steps=300, dt_s=0.2, speed_mps=1.0, landmarks=48), _scramble),
 }
 
 
