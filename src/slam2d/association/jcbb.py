@@ -67,14 +67,14 @@ class _Search:
     best_pairs: list[tuple[int, int]] = field(default_factory=list)
     key_of: Callable[[list[tuple[int, int]]], tuple[int, ...]] | None = None
 
-    def potential(self, open_pairs: BoolArray, rows: IntArray) -> tuple[int, BoolArray]:  # noqa: D417
+    def potential(self, open_pairs: BoolArray, rows: IntArray) -> tuple[int, BoolArray]:
         """Upper bound on how many more pairs can be made from ``open_pairs`` (rows ``rows`` x all candidates): per
         connected component of the compatibility graph, the smaller of its open rows and open candidates. Also
         returns which rows are "tight" (in a component with no more open rows than open candidates, so leaving one
         of them unmatched lowers the bound by one). Shapes: open_pairs (R, A), rows (R,) -> int, (R,) bool."""
         rows_ok = open_pairs.any(axis=1)
         if not rows_ok.any():
-            return 0, rows_ok
+            return 0, np.asarray(rows_ok, dtype=bool)
         cols_ok = open_pairs.any(axis=0)
         comp = self.row_comp[rows]
         r = np.bincount(comp[rows_ok], minlength=self.num_comp)
@@ -100,7 +100,7 @@ class _Node:
     nis: float
 
 
-def _chol2(s: Array) -> tuple[Array, Array, Array, Array]:
+def _chol2(s: Array) -> tuple[Array, Array, Array, BoolArray]:
     """Inverse Cholesky factors of 2x2 SPD matrices: (i11, i21, i22) with L^-1 = [[i11, 0], [i21, i22]], and ok.
 
     Shapes: (m,2,2) -> four (m,) arrays; ``ok`` is False where round-off broke positive definiteness."""

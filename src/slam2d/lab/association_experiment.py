@@ -180,7 +180,7 @@ def run_association_experiment(config: AssociationExperimentConfig, seeds: Itera
         trials = association_trials(log, config, np.random.default_rng([seed, 7]))
         calls += len(trials)
         for m in config.methods:
-            cfg = dataclasses.replace(config.association, method=m)
+            cfg = dataclasses.replace(config.association, method=m)  # type: ignore[arg-type]
             rng = np.random.default_rng([seed, 11])
             seed_counts = AssociationCounts()
             for tr in trials:
