@@ -56,8 +56,9 @@ class AssociationConfig:
 
         _coerce(self.method, Literal["known", "nn", "mahalanobis", "jcbb", "ransac"], "AssociationConfig.method")
         check_probability(self, "gate_probability", "new_landmark_probability", open_low=True)
-        if self.gate_probability >= 1.0 or self.new_landmark_probability >= 1.0:
-            raise ValueError("AssociationConfig gate probabilities must be < 1")
+        for name in ("gate_probability", "new_landmark_probability"):
+            if getattr(self, name) >= 1.0:
+                raise ValueError(f"AssociationConfig.{name} must be < 1 (got {getattr(self, name)})")
         if self.new_landmark_probability < self.gate_probability:
             raise ValueError("AssociationConfig.new_landmark_probability must be >= gate_probability")
         check_positive(self, "nn_max_distance")

@@ -255,6 +255,17 @@ def max_matching(cost: Array, allowed: BoolArray) -> tuple[IntArray, IntArray]:
     return rows_any[r[ok]].astype(np.int64), cols_any[c[ok]].astype(np.int64)
 
 
+def check_joint_positive_definite(problem: Problem, cand: IntArray) -> Array:
+    """The joint covariance of candidates ``cand``; ValueError unless it is positive definite. Shapes: -> (2n,2n)."""
+    c = problem.joint_block(cand, cand)
+    try:
+        np.linalg.cholesky(c)
+    except np.linalg.LinAlgError:
+        raise ValueError(f"Candidates.S_joint is not positive definite on the individually compatible candidates "
+                         f"{problem.ids[cand].tolist()}") from None
+    return c
+
+
 def joint_nis(problem: Problem, obs: IntArray, cand: IntArray) -> float:
     """Joint NIS of the pairs ``(obs[k], cand[k])``: ``nu^T C^-1 nu`` with C from S_joint (nan if a candidate
     repeats; 0 for no pairs). Raises ValueError when that sub-matrix of S_joint is not positive definite."""

@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
-from slam2d.association.gating import Problem, joint_thresholds
+from slam2d.association.gating import Problem, check_joint_positive_definite, joint_thresholds
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -240,12 +240,7 @@ def jcbb(problem: Problem, probability: float, max_nodes: int) -> tuple[IntArray
     if len(order) == 0:
         return empty, empty, 0.0, 1, False
     act = np.flatnonzero(problem.ic.any(axis=0))
-    cov = problem.joint_block(act, act)
-    try:  # the search relies on C being positive definite where it is used
-        np.linalg.cholesky(cov)
-    except np.linalg.LinAlgError:
-        raise ValueError("Candidates.S_joint is not positive definite on the individually compatible candidates "
-                         f"{problem.ids[act].tolist()}") from None
+    cov = check_joint_positive_definite(problem, act)  # the search relies on it where it is used
     ic = problem.ic[np.ix_(order, act)]
     # connected components of the bipartite compatibility graph (rows first, then candidates)
     kk, a = ic.shape

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from slam2d.association.gating import Problem, joint_thresholds, max_matching
+from slam2d.association.gating import Problem, check_joint_positive_definite, joint_thresholds, max_matching
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -75,6 +75,25 @@ def _loo(problem: Problem, obs: IntArray, cand: IntArray) -> tuple[Array, float]
     return loo, float(nu @ ci @ nu)
 
 
+def _sample(problem: Problem, obs_ic: IntArray, m: int, iterations: int, gate: float,
+            rng: np.random.Generator) -> tuple[IntArray, IntArray, Array]:
+    """Draw ``iterations`` minimal sets at once: m distinct observations, a random compatible candidate for each.
+    Keeps those with distinct candidates that are jointly compatible. Shapes: -> (N, m), (N, m), (N,)."""
+    h_obs = obs_ic[np.argsort(rng.random((iterations, len(obs_ic))), axis=1)[:, :m]]
+    keys = np.where(problem.ic[h_obs], rng.random((iterations, m, problem.num_candidates)), -1.0)
+    h_cand = np.argmax(keys, axis=-1)
+    srt = np.sort(h_cand, axis=1)
+    valid = ~(srt[:, 1:] == srt[:, :-1]).any(axis=1)
+    h_obs, h_cand = h_obs[valid], h_cand[valid]
+    if len(h_obs) == 0:
+        return h_obs, h_cand, np.zeros(0)
+    nu_h = problem.nu[h_obs, h_cand].reshape(len(h_obs), 2 * m)
+    c_hh = np.stack([problem.joint_block(c, c) for c in h_cand])
+    nis_h = np.einsum("ni,ni->n", nu_h, np.linalg.solve(c_hh, nu_h[..., None])[..., 0])
+    jc = nis_h <= gate
+    return h_obs[jc], h_cand[jc], nis_h[jc]
+
+
 def ransac(problem: Problem, iterations: int, min_pairs: int, probability: float,
            rng: np.random.Generator) -> tuple[IntArray, IntArray, int]:
     """Returns (obs (n,), cand (n,), hypotheses scored) with pairs sorted by observation."""
@@ -83,23 +102,15 @@ def ransac(problem: Problem, iterations: int, min_pairs: int, probability: float
     act = np.flatnonzero(problem.ic.any(axis=0))
     if len(obs_ic) == 0:
         return empty, empty, 0
-    m = min(min_pairs, len(obs_ic))
+    check_joint_positive_definite(problem, act)  # conditioning relies on it
     thr = joint_thresholds(probability, problem.num_obs)
-    # ---- sample N minimal sets at once: m distinct observations, a random compatible candidate for each
-    h_obs = obs_ic[np.argsort(rng.random((iterations, len(obs_ic))), axis=1)[:, :m]]
-    keys = np.where(problem.ic[h_obs], rng.random((iterations, m, problem.num_candidates)), -1.0)
-    h_cand = np.argmax(keys, axis=-1)
-    srt = np.sort(h_cand, axis=1)
-    valid = ~(srt[:, 1:] == srt[:, :-1]).any(axis=1)
-    h_obs, h_cand = h_obs[valid], h_cand[valid]
-    if len(h_obs) == 0:
-        return empty, empty, iterations
-    nu_h = problem.nu[h_obs, h_cand].reshape(len(h_obs), 2 * m)
-    c_hh = np.stack([problem.joint_block(c, c) for c in h_cand])
-    nis_h = np.einsum("ni,ni->n", nu_h, np.linalg.solve(c_hh, nu_h[..., None])[..., 0])
-    jc = nis_h <= thr[m]
-    h_obs, h_cand, nis_h = h_obs[jc], h_cand[jc], nis_h[jc]
-    if len(h_obs) == 0:
+    # minimal sets of m pairs; when no valid set of that size turns up (e.g. every observation competes for the same
+    # landmark), fall back to smaller sets rather than to no answer
+    for m in range(min(min_pairs, len(obs_ic)), 0, -1):
+        h_obs, h_cand, nis_h = _sample(problem, obs_ic, m, iterations, thr[m], rng)
+        if len(h_obs):
+            break
+    else:
         return empty, empty, iterations
     # ---- score all hypotheses by consensus in one batch (chunks bound the memory of the (N, K, A) arrays)
     scores, costs = [], []
