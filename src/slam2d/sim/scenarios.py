@@ -193,36 +193,48 @@ def _grid(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
     return Layout(world, np.roll(route, -1, axis=0), start)
 
 
-def _cluster_points(rng: np.random.Generator, centre: Array, n: int, radius_m: float, min_sep_m: float) -> Array:
-    """``n`` points in a disc around ``centre``, pairwise at least ``min_sep_m`` apart (greedy rejection)."""
+def _cluster_points(rng: np.random.Generator, centre: Array, n: int, radius_m: float, min_sep_m: float,
+                    keep: Callable[[Array], NDArray[np.bool_]]) -> Array:
+    """``n`` points in a disc around ``centre``, pairwise at least ``min_sep_m`` apart and satisfying ``keep``
+    (greedy rejection)."""
     pts: list[Array] = []
     while len(pts) < n:
         r = radius_m * np.sqrt(rng.random())
         a = rng.uniform(-np.pi, np.pi)
         p = centre + r * np.array([np.cos(a), np.sin(a)])
-        if all(np.hypot(*(p - q)) >= min_sep_m for q in pts):
+        if keep(p[None])[0] and all(np.hypot(*(p - q)) >= min_sep_m for q in pts):
             pts.append(p)
-        elif len(pts) and rng.random() < 0.002:  # the disc is full: start over with what fits (never loops forever)
+        elif len(pts) and rng.random() < 0.002:  # the disc is full: start over (never loops forever)
             pts = []
     return np.array(pts)
 
 
 def _scramble(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
-    # a 16 x 10 m loop; clusters of 6 landmarks sit 2.5 m off the route, alternately inside and outside
+    # a 16 x 10 m loop; clusters of 6 landmarks sit 2.5 m off the route, alternately inside and outside, at least
+    # 3 m from the corners; no landmark is closer than 1.5 m to the route, so range-bearing linearisation holds
     route = np.array([[4.0, 4.0], [20.0, 4.0], [20.0, 14.0], [4.0, 14.0]])
+    lengths = np.array([16.0, 10.0, 16.0, 10.0])
     n = int(cfg.landmarks or 48)
-    per_cluster = 6
+    per_cluster, margin = 6, 3.0
     n_clusters = int(np.ceil(n / per_cluster))
-    perimeter = 2 * (16.0 + 10.0)
-    s = (np.arange(n_clusters) + 0.5) * perimeter / n_clusters
-    corners, lengths = route, np.array([16.0, 10.0, 16.0, 10.0])
-    k = np.minimum(np.searchsorted(np.cumsum(lengths), s, side="right"), 3)
-    start = np.concatenate([[0.0], np.cumsum(lengths)[:-1]])[k]
-    d = (np.roll(corners, -1, axis=0) - corners)[k] / lengths[k, None]
-    normal = np.stack([-d[:, 1], d[:, 0]], axis=-1)  # points into the loop
-    side = np.where(np.arange(n_clusters) % 2 == 0, 2.5, -2.5)
-    centres = corners[k] + d * (s - start)[:, None] + normal * side[:, None]
-    lm = np.vstack([_cluster_points(rng, c, per_cluster, 0.7, 0.2) for c in centres])[:n]
+    # clusters per leg in proportion to its usable length (largest remainder)
+    share = n_clusters * (lengths - 2 * margin) / np.sum(lengths - 2 * margin)
+    per_leg = np.floor(share).astype(int)
+    per_leg[np.argsort(share - per_leg)[::-1][: n_clusters - per_leg.sum()]] += 1
+    centres = []
+    for leg in range(4):
+        a, b = route[leg], route[(leg + 1) % 4]
+        d = (b - a) / lengths[leg]
+        normal = np.array([-d[1], d[0]])  # points into the loop
+        for k in range(per_leg[leg]):
+            along = margin + (k + 0.5) * (lengths[leg] - 2 * margin) / per_leg[leg]
+            side = 2.5 if len(centres) % 2 == 0 else -2.5
+            centres.append(a + d * along + normal * side)
+
+    def keep(p: Array) -> NDArray[np.bool_]:
+        return _dist_to_polyline(p, route) >= 1.5
+
+    lm = np.vstack([_cluster_points(rng, c, per_cluster, 0.7, 0.2, keep) for c in centres])[:n]
     world = World(lm, np.arange(n), np.zeros((0, 4)), bounds=(0.0, 0.0, 24.0, 18.0))
     return Layout(world, route, np.array([4.0, 4.0, 0.0]))
 
