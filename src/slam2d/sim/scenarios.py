@@ -221,7 +221,7 @@ def _scramble(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
     share = n_clusters * (lengths - 2 * margin) / np.sum(lengths - 2 * margin)
     per_leg = np.floor(share).astype(int)
     per_leg[np.argsort(share - per_leg)[::-1][: n_clusters - per_leg.sum()]] += 1
-    centres = []
+    centres: list[Array] = []
     for leg in range(4):
         a, b = route[leg], route[(leg + 1) % 4]
         d = (b - a) / lengths[leg]
