@@ -13,13 +13,21 @@ smallest assignment vector (in observation order, candidate index, "unmatched" r
 
 Unlike the textbook recursion this does not require every *prefix* of H (in observation order) to be jointly
 compatible, so the answer does not depend on the order of the observations. The pruning is still strong because
-the joint NIS never decreases when a pair is added (a Schur-complement identity), which gives three bounds:
+the joint NIS never decreases when a pair is added (a Schur-complement identity). With NIS(H + P) >= NIS(H) +
+NIS({p} | H) for any p in P, each node derives:
 
-* count: a branch whose pairs plus an upper bound on the pairs still possible cannot reach the best pair count so
-  far is cut (the usual JCBB bound, tightened: per connected component of the compatibility graph, at most
-  min(open observations, open candidates) more pairs);
-* NIS: a branch that can at most tie the best count is cut once its NIS exceeds the best NIS;
-* joint gate: a branch is cut once its NIS exceeds the chi-square threshold of the largest hypothesis it can grow to.
+* feasibility: a pair p whose NIS(H) + NIS({p} | H) already exceeds the largest gate a completion could face (or the
+  incumbent's NIS when the count can at best tie) is removed from the subtree; iterated to a fixed point, since
+  fewer usable pairs lower the reachable count and hence the gate;
+* count: the usual JCBB bound, tightened: per connected component of the compatibility graph at most
+  min(open observations, open candidates) more pairs; a branch that cannot reach the incumbent's count is cut;
+* NIS floor: with slack s = (reachable count - incumbent count), at most s "tight" rows may stay unmatched, so the
+  (s+1)-th largest of their smallest single-pair increments is a floor on what the completion adds; the branch is
+  cut when the floor exceeds the gate, or the incumbent's NIS when s = 0.
+
+Search order (which never changes the answer): branch on the most constrained observation (fewest usable pairs);
+try children that are jointly compatible at their own size first, lowest NIS first (the textbook dive, which finds
+a strong incumbent early), then "unmatched", then the remaining children.
 
 Each node keeps the predictions of every candidate conditioned on its hypothesis (see ``_Node``), so all children
 of a node are scored in one vectorised step and a child costs one (2 x 2n)(2n x 2A) product. Only matrix products
