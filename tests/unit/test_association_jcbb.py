@@ -17,6 +17,7 @@ import pytest
 from _association_problems import random_problem
 from scipy import stats
 
+import slam2d.association.jcbb as jcbb_module
 from slam2d.association import CLUTTER, NEW, AssociationConfig, associate
 from slam2d.association.gating import build_problem
 
@@ -62,10 +63,13 @@ def exhaustive(prob, probability: float) -> tuple[int, float, tuple[int, ...]]:
     return best
 
 
-def test_jcbb_equals_exhaustive_search_on_random_problems():
-    rng = np.random.default_rng(20240601)
+@pytest.mark.parametrize("seeded", [True, False], ids=["with-incumbent", "search-only"])
+def test_jcbb_equals_exhaustive_search_on_random_problems(seeded, monkeypatch):
+    if not seeded:  # the branch and bound alone, without the heuristic starting hypothesis, must agree as well
+        monkeypatch.setattr(jcbb_module, "_seed_incumbent", lambda st, d2: None)
+    rng = np.random.default_rng(20240601 if seeded else 777)
     n_problems, ambiguous, differs_from_ic, multi_pair = 0, 0, 0, 0
-    for trial in range(240):
+    for trial in range(240 if seeded else 200):
         obs, cands = random_problem(rng, max_obs=7, max_cand=10)
         if trial % 6 == 5:  # also without landmark correlations (S_joint None means block diagonal of S)
             cands = dataclasses.replace(cands, S_joint=None)
