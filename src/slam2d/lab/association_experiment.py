@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -205,7 +205,3 @@ def summary_record(result: AssociationExperimentResult) -> dict[str, Any]:
 
     return {"experiment": "association", "config": to_dict(result.config), "seeds": list(result.seeds),
             "methods": result.rows()}
-
-
-def default_seeds(n: int, first: int = 0) -> Sequence[int]:
-    return range(first, first + n)
