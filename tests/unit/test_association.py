@@ -320,6 +320,8 @@ def test_bad_observations_and_config_raise():
         associate(obs_of([[np.nan, 0.0]]), cands, AssociationConfig(), rng=RNG)
     with pytest.raises(ValueError, match="range_m must be >= 0"):
         associate(obs_of([[-1.0, 0.0]]), cands, AssociationConfig(), rng=RNG)
+    with pytest.raises(ValueError, match=r"Observations.descriptor must have shape \(1, D\)"):
+        associate(obs_of([[5.0, 0.0]], desc=np.ones((2, 3))), cands, AssociationConfig(), rng=RNG)
     with pytest.raises(ValueError, match="descriptor length"):
         associate(obs_of([[5.0, 0.0]], desc=np.ones((1, 3))), cands_of([[5.0, 0.0]], s, desc=np.ones((1, 4))),
                   AssociationConfig(descriptor_max_distance=1.0), rng=RNG)

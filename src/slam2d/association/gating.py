@@ -102,6 +102,9 @@ def validate(observations: Observations, candidates: Candidates) -> tuple[Array,
         raise ValueError("Observations.range_m / bearing_rad contain non-finite values")
     if np.any(observations.range_m < 0):
         raise ValueError("Observations.range_m must be >= 0")
+    if observations.descriptor is not None and (np.ndim(observations.descriptor) != 2
+                                                or np.shape(observations.descriptor)[0] != k):
+        raise ValueError(f"Observations.descriptor must have shape ({k}, D), got {np.shape(observations.descriptor)}")
     ids = np.asarray(candidates.ids)
     n = ids.shape[0] if ids.ndim == 1 else -1
     if ids.ndim != 1 or not np.issubdtype(ids.dtype, np.integer):
@@ -138,7 +141,8 @@ def validate(observations: Observations, candidates: Candidates) -> tuple[Array,
             raise ValueError(f"Candidates.S_joint diagonal block {bad} (candidate id {ids[bad]}) differs from "
                              f"Candidates.S[{bad}]; S must be the diagonal blocks of S_joint")
         sj = 0.5 * (sj + sj.T)
-    if candidates.descriptors is not None and np.shape(candidates.descriptors)[:1] != (n,):
+    if candidates.descriptors is not None and (np.ndim(candidates.descriptors) != 2
+                                               or np.shape(candidates.descriptors)[0] != n):
         raise ValueError(f"Candidates.descriptors must have shape ({n}, D), got {np.shape(candidates.descriptors)}")
     if (candidates.descriptors is not None and observations.descriptor is not None
             and np.shape(candidates.descriptors)[1:] != np.shape(observations.descriptor)[1:]):
