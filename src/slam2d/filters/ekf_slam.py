@@ -35,13 +35,11 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import blas
 
-import slam2d.association as association
 from slam2d import _jacobians
-from slam2d.association import CLUTTER, NEW, AssociationConfig, AssociationResult, Candidates, associate_known
+from slam2d.association import CLUTTER, NEW, AssociationConfig, AssociationResult, Candidates, associate
 from slam2d.config import check_nonnegative, check_positive
 from slam2d.filters.base import Estimate
-from slam2d.geometry.angles import angle_diff, wrap_angle
-from slam2d.geometry.gaussian import chi2_gate
+from slam2d.geometry.angles import wrap_angle
 from slam2d.log import Observations, Step
 from slam2d.models.motion import MotionNoise
 from slam2d.models.sensors import (
@@ -434,49 +432,16 @@ def predict_landmarks(mu: Array, P: Array, js: ArrayLike, R: Array, *,
     return z_pred, S, 0.5 * (sj + sj.T)
 
 
-def _fallback_mahalanobis(observations: Observations, candidates: Candidates,
-                          config: AssociationConfig) -> AssociationResult:
-    """Used only until ``slam2d.association.associate`` exists: individual compatibility + mutual exclusion.
-
-    Greedy: the globally closest (observation, candidate) pair inside the gate is fixed first, then the next.
-    Unmatched observations outside the wide ``new_landmark_probability`` gate of every candidate are NEW; those
-    between the gates are CLUTTER (ambiguous).
-    """
-    k = len(observations)
-    assignment = np.full(k, NEW, dtype=np.int64)
-    d2_out = np.full(k, np.nan)
-    if k == 0 or len(candidates) == 0:
-        return AssociationResult(assignment, d2_out, 0.0)
-    z = observations.z
-    res = z[:, None, :] - candidates.z_pred[None, :, :]
-    res[..., 1] = angle_diff(res[..., 1], 0.0)
-    s_inv = np.linalg.inv(candidates.S)
-    d2 = np.einsum("kla,lab,klb->kl", res, s_inv, res)
-    gate, gate_new = chi2_gate(config.gate_probability, 2), chi2_gate(config.new_landmark_probability, 2)
-    work = np.where(d2 <= gate, d2, np.inf)
-    for _ in range(min(k, len(candidates))):  # at most min(K, L) assignments
-        flat = int(np.argmin(work))
-        i, j = divmod(flat, work.shape[1])
-        if not np.isfinite(work[i, j]):
-            break
-        assignment[i], d2_out[i] = candidates.ids[j], d2[i, j]
-        work[i, :] = np.inf
-        work[:, j] = np.inf
-    unmatched = assignment == NEW
-    ambiguous = unmatched & (np.min(d2, axis=1) <= gate_new)
-    assignment[ambiguous] = CLUTTER
-    return AssociationResult(assignment, d2_out, float(np.nansum(d2_out)))
-
-
 def run_association(observations: Observations, candidates: Candidates, config: AssociationConfig,
                     rng: np.random.Generator) -> AssociationResult:
-    """Dispatch to ``slam2d.association.associate`` when present; else known ids or the small fallback above."""
-    assoc_fn = getattr(association, "associate", None)
-    if assoc_fn is not None:
-        return assoc_fn(observations, candidates, config, rng=rng)  # type: ignore[no-any-return]
-    if config.method == "known":
-        return associate_known(observations, candidates)
-    return _fallback_mahalanobis(observations, candidates, config)
+    """Associate through ``slam2d.association.associate``; an invalid innovation covariance (which can only come
+    from a corrupted P) is reported as a :class:`CovarianceError` so the covariance guard handles it."""
+    try:
+        return associate(observations, candidates, config, rng=rng)
+    except ValueError as e:
+        if "Candidates.S" in str(e):
+            raise CovarianceError(f"association: {e}", applied=False) from None
+        raise
 
 
 # ---------------------------------------------------------------------------------------------------- estimator
@@ -663,8 +628,16 @@ class EKFSLAM:
             self._last_assoc = np.zeros(0, dtype=np.int64)
             return
         cands, js, in_view = self._candidates(obs)
-        result = run_association(obs, cands, self.config.association, self._rng) if k else \
-            AssociationResult(np.zeros(0, dtype=np.int64), np.zeros(0))
+        try:
+            result = run_association(obs, cands, self.config.association, self._rng) if k else \
+                AssociationResult(np.zeros(0, dtype=np.int64), np.zeros(0))
+        except CovarianceError:
+            if self.config.covariance_guard == "raise":
+                raise
+            self._P = repair_covariance(self._P)
+            self._repairs += 1
+            cands, js, in_view = self._candidates(obs)
+            result = run_association(obs, cands, self.config.association, self._rng)
         assign = np.asarray(result.assignment, dtype=np.int64)
         self._last_assoc = assign.copy()
         z = obs.z
