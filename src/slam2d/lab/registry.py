@@ -1,7 +1,8 @@
 """Estimators by name: the single place that maps a CLI/web/sweep name to a config class and an estimator class.
 
 ``make_estimator(name, overrides, log_metadata)`` fills an estimator config's ``motion`` and ``sensor`` fields
-(and ``gps_std_m``) from the log's recorded parameters (so a filter assumes the noise the data was made with) and then applies overrides.
+(and ``gps_std_m``) from the log's recorded parameters (so a filter assumes the noise the data was made with)
+and then applies overrides.
 """
 
 from __future__ import annotations
