@@ -92,3 +92,39 @@ def association_counts(true_ids: ArrayLike, assignment: ArrayLike, candidate_ids
         unmatchable_landmark=int(unmatchable_lm.sum()),
         wrongly_merged=int((unmatchable_lm & matched).sum()),
     )
+
+
+def run_association_scores(assignments: list[ArrayLike], true_ids: list[ArrayLike]) -> dict[str, float]:
+    """Precision and recall of a whole run whose landmark ids are the estimator's own (not the source's).
+
+    Each estimator landmark is mapped to the true id most often observed when it was matched; then a match is
+    correct when its landmark maps to the observation's true id. An observation is matchable when its true landmark
+    had been observed in an earlier step (so a correct match was possible). Steps are given in order: one array of
+    assignments (>= 0 estimator id, NEW, CLUTTER) and one of true ids per step.
+    """
+    if not assignments:
+        return {"assoc_precision": float("nan"), "assoc_recall": float("nan")}
+    a = np.concatenate([np.asarray(x, dtype=np.int64).reshape(-1) for x in assignments])
+    t = np.concatenate([np.asarray(x, dtype=np.int64).reshape(-1) for x in true_ids])
+    step = np.concatenate([np.full(np.size(x), i) for i, x in enumerate(assignments)])
+    matched = a >= 0
+    mapping: dict[int, int] = {}
+    if np.any(matched):
+        pairs, counts = np.unique(np.stack([a[matched], t[matched]], axis=1), axis=0, return_counts=True)
+        order = np.lexsort((-counts, pairs[:, 0]))  # per estimator id, most frequent true id first
+        for est_id, true_id in pairs[order]:
+            mapping.setdefault(int(est_id), int(true_id))
+    mapped = np.array([mapping.get(int(x), -10) for x in a], dtype=np.int64)
+    correct = matched & (mapped == t) & (t >= 0)
+    # first sighting step of every true landmark: observations after it are matchable
+    first_seen: dict[int, int] = {}
+    for s_i, tid in zip(step, t, strict=True):
+        if tid >= 0 and int(tid) not in first_seen:
+            first_seen[int(tid)] = int(s_i)
+    matchable = np.array([tid >= 0 and first_seen[int(tid)] < s_i for s_i, tid in zip(step, t, strict=True)],
+                         dtype=bool)
+    n_match, n_matchable = int(matched.sum()), int(matchable.sum())
+    return {
+        "assoc_precision": float(correct.sum() / n_match) if n_match else float("nan"),
+        "assoc_recall": float((correct & matchable).sum() / n_matchable) if n_matchable else float("nan"),
+    }
