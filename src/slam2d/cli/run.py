@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from slam2d.cli.common import add_set_argument, overrides_from, print_table, write_json
 from slam2d.association import METHODS
+from slam2d.cli.common import add_set_argument, overrides_from, print_table, write_json
 from slam2d.lab.registry import estimator_names
 from slam2d.lab.runner import run_named
 from slam2d.log import Log

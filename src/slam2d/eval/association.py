@@ -18,6 +18,7 @@ ratios are pooled, not averages of per-batch ratios):
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -94,7 +95,7 @@ def association_counts(true_ids: ArrayLike, assignment: ArrayLike, candidate_ids
     )
 
 
-def run_association_scores(assignments: list[ArrayLike], true_ids: list[ArrayLike]) -> dict[str, float]:
+def run_association_scores(assignments: Sequence[ArrayLike], true_ids: Sequence[ArrayLike]) -> dict[str, float]:
     """Precision and recall of a whole run whose landmark ids are the estimator's own (not the source's).
 
     Each estimator landmark is mapped to the true id most often observed when it was matched; then a match is

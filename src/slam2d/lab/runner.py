@@ -78,8 +78,8 @@ def run(
     show = progress if progress is not None else (t > 2000 and sys.stderr.isatty())
     tick = _progress(t, show)
     snap = first
-    assigned: list[Array] = []
-    truth_ids: list[Array] = []
+    assigned: list[NDArray[np.int64]] = []
+    truth_ids: list[NDArray[np.int64]] = []
     for i, step in enumerate(log, start=1):
         t0 = time.perf_counter()
         estimator.step(step)
@@ -91,7 +91,7 @@ def run(
             snaps.append(snap)
         assoc = snap.extras.get("assoc")
         if assoc is not None and len(assoc) == len(step.observations):
-            assigned.append(np.asarray(assoc))
+            assigned.append(np.asarray(assoc, dtype=np.int64))
             truth_ids.append(step.observations.landmark_id)
         if on_step is not None:
             on_step(i, snap)
