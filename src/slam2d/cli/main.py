@@ -14,6 +14,8 @@ COMMANDS = [
     "slam2d.cli.simulate",
     "slam2d.cli.run",
     "slam2d.cli.demo",
+    "slam2d.cli.sweep",
+    "slam2d.cli.report",
 ]
 
 
