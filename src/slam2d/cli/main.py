@@ -16,6 +16,7 @@ COMMANDS = [
     "slam2d.cli.demo",
     "slam2d.cli.sweep",
     "slam2d.cli.report",
+    "slam2d.cli.experiments_cli",
 ]
 
 
