@@ -1,5 +1,7 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import slam2d
 from slam2d.eval import align_se2, ate, rpe
@@ -75,3 +77,15 @@ def test_dead_reckoning_covariance_is_consistent():
 def test_unknown_names_list_the_valid_ones():
     with pytest.raises(ValueError, match="valid estimators.*dead-reckoning"):
         slam2d.run_named("nope")
+
+
+@settings(max_examples=25)
+@given(tx=st.floats(-100, 100), ty=st.floats(-100, 100), th=st.floats(-np.pi, np.pi), seed=st.integers(0, 2**31))
+def test_ate_and_rpe_are_blind_to_any_rigid_motion_of_the_estimate(tx, ty, th, seed):
+    traj = np.cumsum(np.random.default_rng(seed).normal(size=(40, 3)), axis=0)
+    moved = compose(np.array([tx, ty, th]), traj)
+    assert ate(moved, traj).rmse_m < 1e-8
+    # the recovered alignment is the inverse of the applied motion
+    np.testing.assert_allclose(compose(ate(moved, traj).alignment, np.array([tx, ty, th])), [0, 0, 0], atol=1e-8)
+    r = rpe(moved, traj, delta=3)
+    assert r.trans_rmse_m < 1e-8 and r.rot_rmse_rad < 1e-8
