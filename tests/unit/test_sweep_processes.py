@@ -45,7 +45,7 @@ def test_dask_sweep_survives_a_killed_worker(tmp_path):
     from distributed import Client
 
     sched_file = tmp_path / "scheduler.json"
-    logs = [open(tmp_path / f"{n}.log", "w") for n in ("scheduler", "w1", "w2")]  # noqa: SIM115
+    logs = [open(tmp_path / f"{n}.log", "w") for n in ("scheduler", "w1", "w2")]
     procs = [subprocess.Popen(
         [PY, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0",
          "--dashboard-address", "127.0.0.1:0", "--scheduler-file", str(sched_file)],

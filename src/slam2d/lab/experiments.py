@@ -61,7 +61,7 @@ def _lap_steps(landmarks: int, overrides: dict[str, Any], seed: int) -> int:
     wp = np.vstack([layout.waypoints, layout.waypoints[:1]])
     perimeter = float(np.sum(np.hypot(*np.diff(wp, axis=0).T)))
     assert cfg.speed_mps is not None and cfg.dt_s is not None
-    return int(math.ceil(1.15 * perimeter / (cfg.speed_mps * cfg.dt_s))) + 10
+    return math.ceil(1.15 * perimeter / (cfg.speed_mps * cfg.dt_s)) + 10
 
 
 def scaling(

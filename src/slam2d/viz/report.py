@@ -118,7 +118,8 @@ def _scaling_figure(scaling: Mapping[str, Any], out: Path) -> str | None:
             y = np.array([r["step_ms_median"] for r in rs], dtype=np.float64)
             if not np.any(x > 0):
                 continue
-            ax.plot(x, y, "o-", color=f"C{i % 10}", label=f"{name}: slope {_fmt(slope)} (claim {fit.get('claim', '?')})")
+            label = f"{name}: slope {_fmt(slope)} (claim {fit.get('claim', '?')})"
+            ax.plot(x, y, "o-", color=f"C{i % 10}", label=label)
     for ax, xl in ((axes[0], "landmarks in the estimate (mapped)"), (axes[1], "landmarks in the world (N)")):
         ax.set_xscale("log")
         ax.set_yscale("log")
