@@ -54,10 +54,10 @@ def _save(out: str | None, name: str, result: dict[str, Any]) -> None:
 
 def _scaling_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--estimators", type=_names, default=None, help="comma-separated (default: all registered)")
-    p.add_argument("--landmarks", type=_ints, default=[50, 100, 200, 400, 800], help="comma-separated N values")
+    p.add_argument("--landmarks", type=_ints, default=[100, 400, 1600, 6400], help="comma-separated N values")
     p.add_argument("--steps", type=int, default=None, help="steps per run (default: one lap of the grid + 15%%)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--max-run-s", type=float, default=60.0, help="stop an estimator after a run longer than this")
+    p.add_argument("--max-run-s", type=float, default=120.0, help="stop an estimator after a run longer than this")
     p.add_argument("--out", default=None, metavar="DIR", help="write DIR/scaling.json")
     add_set_argument(p)
 
@@ -70,7 +70,7 @@ def _scaling_run(args: argparse.Namespace) -> int:
     print_table(res["rows"], ["estimator", "landmarks", "mapped", "obs_per_step", "step_ms_median", "steps"])
     print()
     print_table([{"estimator": k, **v} for k, v in res["fits"].items()],
-                ["estimator", "slope_vs_mapped", "slope_vs_landmarks", "claim", "points"])
+                ["estimator", "slope_vs_mapped", "end_slope_vs_mapped", "slope_vs_landmarks", "claim", "points"])
     _save(args.out, "scaling", res)
     return 0
 

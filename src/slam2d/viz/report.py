@@ -211,7 +211,8 @@ def build_report(directory: str | Path, out: str | Path | None = None) -> Path:
         sc = json.loads(scaling_path.read_text())
         parts.append("<h2>Scaling (grid scenario)</h2>")
         parts.append(_table([{"estimator": k, **v} for k, v in sc.get("fits", {}).items()],
-                            ["estimator", "slope_vs_mapped", "slope_vs_landmarks", "claim", "claim_exponent",
+                            ["estimator", "slope_vs_mapped", "end_slope_vs_mapped", "slope_vs_landmarks", "claim",
+                             "claim_exponent",
                              "points"]))
         parts.append(_table(sc.get("rows", []), ["estimator", "landmarks", "mapped", "obs_per_step",
                                                  "step_ms_median", "steps", "run_s"]))
