@@ -185,3 +185,17 @@ def test_report_writes_html_with_figures(tmp_path):
         assert (tmp_path / "o" / "report" / img).stat().st_size > 1000
     assert "dead-reckoning / grid (sensor.range_std_m=0.05, steps=5)" in page
     assert main(["report", str(tmp_path / "nothing")]) == 2
+
+
+def test_two_sweeps_cannot_write_one_store_at_once(tmp_path):
+    plan = load_sweep(write(tmp_path, TINY))
+    inner: list[str] = []
+
+    def on_record(rec):
+        if not inner:
+            with pytest.raises(ValueError, match="another sweep is writing"):
+                run_sweep(plan, tmp_path / "o", FlakyExecutor(set()), progress=False, report=lambda m: None)
+            inner.append("checked")
+
+    run_sweep(plan, tmp_path / "o", FlakyExecutor(set()), progress=False, report=lambda m: None, on_record=on_record)
+    assert inner == ["checked"]

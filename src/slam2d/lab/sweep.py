@@ -50,6 +50,7 @@ from slam2d.sim.scenarios import ScenarioConfig
 STORE_FILE = "results.jsonl"
 QUARANTINE_FILE = "quarantine.jsonl"
 PLAN_FILE = "plan.json"
+LOCK_FILE = ".lock"
 
 TOP_KEYS = {
     "name": "a label for the sweep (string)",
@@ -535,6 +536,29 @@ def run_sweep(
     say = report or (lambda msg: print(msg, file=sys.stderr))
     store = ResultStore(out_dir)
     store.directory.mkdir(parents=True, exist_ok=True)
+    with _exclusive(store.directory / LOCK_FILE):
+        return _run_locked(plan, store, executor, say, progress, max_in_flight, on_record)
+
+
+@contextlib.contextmanager
+def _exclusive(path: Path) -> Iterator[None]:
+    """Hold an advisory lock so that two sweeps never write one store at the same time."""
+    import fcntl
+
+    with path.open("a") as f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"another sweep is writing to {path.parent} (lock {path.name} is held)") from None
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def _run_locked(plan: SweepPlan, store: ResultStore, executor: cf.Executor, say: Callable[[str], None],
+                progress: bool | None, max_in_flight: int | None,
+                on_record: Callable[[dict[str, Any]], None] | None) -> SweepSummary:
     done, problems = store.scan()
     for p in problems:
         say(f"store {store.path}: line {p.line}: {p.reason}; moved to {QUARANTINE_FILE}, its run will be redone")
