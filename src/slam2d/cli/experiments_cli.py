@@ -58,6 +58,7 @@ def _scaling_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=int, default=None, help="steps per run (default: one lap of the grid + 15%%)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-run-s", type=float, default=120.0, help="stop an estimator after a run longer than this")
+    p.add_argument("--blas-threads", type=int, default=1, help="BLAS threads while timing (0: leave as is)")
     p.add_argument("--out", default=None, metavar="DIR", help="write DIR/scaling.json")
     add_set_argument(p)
 
@@ -66,7 +67,7 @@ def _scaling_run(args: argparse.Namespace) -> int:
     from slam2d.lab.experiments import scaling
 
     res = scaling(args.estimators, args.landmarks, seed=args.seed, steps=args.steps, overrides=overrides_from(args),
-                  max_run_s=args.max_run_s, report=print)
+                  max_run_s=args.max_run_s, blas_threads=args.blas_threads or None, report=print)
     print_table(res["rows"], ["estimator", "landmarks", "mapped", "obs_per_step", "step_ms_median", "steps"])
     print()
     print_table([{"estimator": k, **v} for k, v in res["fits"].items()],

@@ -74,6 +74,7 @@ def scaling(
     steps: int | None = None,
     overrides: dict[str, Any] | None = None,
     max_run_s: float = 120.0,
+    blas_threads: int | None = 1,
     report: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Time per step vs number of landmarks for each estimator on the ``grid`` scenario; fitted log-log slopes.
@@ -83,8 +84,13 @@ def scaling(
     whose run takes longer than ``max_run_s``. Besides the least-squares slope over all N, the slope between the two
     largest maps is reported: fixed per-step costs flatten the curve at small N, so the end slope is the better
     estimate of the asymptotic exponent.
-    Runs are serial on purpose: timings from parallel runs on shared cores would disturb each other.
+    Runs are serial on purpose: timings from parallel runs on shared cores would disturb each other. BLAS is
+    limited to ``blas_threads`` threads while timing (None: leave it alone): the claims are about operation counts,
+    and on a busy machine OpenBLAS's spinning worker threads multiplied the EKF's per-step CPU time by ~10 (measured:
+    3.9 ms single-threaded vs 44 ms with 2 threads at 323 mapped landmarks on a loaded 2-core box).
     """
+    from threadpoolctl import threadpool_limits
+
     from slam2d.lab.registry import make_estimator
     from slam2d.lab.runner import run
     from slam2d.sim.simulator import simulate, spawn_streams
@@ -109,7 +115,8 @@ def scaling(
 
             t0 = time.perf_counter()
             cpu[0] = time.process_time()
-            res = run(est, log, rng=spawn_streams(seed)["estimator"], on_step=on_step, progress=False)
+            with threadpool_limits(limits=blas_threads, user_api="blas"):
+                res = run(est, log, rng=spawn_streams(seed)["estimator"], on_step=on_step, progress=False)
             wall = time.perf_counter() - t0
             tail = slice(2 * t_steps // 3, None)
             step_cpu = np.diff(cpu)
@@ -139,7 +146,8 @@ def scaling(
                                                     [r["step_ms_median"] for r in mine[-2:]]),
             "claim": text, "claim_exponent": exponent, "points": len(mine),
         }
-    return {"experiment": "scaling", "scenario": "grid", "seed": seed, "overrides": base, "rows": rows, "fits": fits}
+    return {"experiment": "scaling", "scenario": "grid", "seed": seed, "overrides": base, "blas_threads": blas_threads,
+            "rows": rows, "fits": fits}
 
 
 def consistency(
