@@ -106,27 +106,29 @@ def _scaling_figure(scaling: Mapping[str, Any], out: Path) -> str | None:
     rows = scaling.get("rows", [])
     if not rows:
         return None
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5.0))
     by: dict[str, list[Mapping[str, Any]]] = defaultdict(list)
     for r in rows:
         by[r["estimator"]].append(r)
     for i, (name, rs) in enumerate(sorted(by.items())):
         fit = scaling.get("fits", {}).get(name, {})
-        for ax, key, slope in ((axes[0], "mapped", fit.get("slope_vs_mapped")),
-                               (axes[1], "landmarks", fit.get("slope_vs_landmarks"))):
+        claim = fit.get("claim_exponent")
+        for ax, key, slope, end in ((axes[0], "mapped", fit.get("slope_vs_mapped"), fit.get("end_slope_vs_mapped")),
+                                    (axes[1], "landmarks", fit.get("slope_vs_landmarks"), None)):
             x = np.array([r[key] for r in rs], dtype=np.float64)
             y = np.array([r["step_ms_median"] for r in rs], dtype=np.float64)
             if not np.any(x > 0):
                 continue
-            label = f"{name}: slope {_fmt(slope)} (claim {fit.get('claim', '?')})"
+            label = f"{name}: slope {_fmt(slope)}" + (f", end {_fmt(end)}" if end is not None else "")
+            label += f" (claim {_fmt(claim)})" if claim is not None else ""
             ax.plot(x, y, "o-", color=f"C{i % 10}", label=label)
     for ax, xl in ((axes[0], "landmarks in the estimate (mapped)"), (axes[1], "landmarks in the world (N)")):
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel(xl)
-        ax.set_ylabel("time per step (ms, median of the last third)")
+        ax.set_ylabel("CPU ms per step (median, last third)")
         if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=7)
+            ax.legend(fontsize=7, loc="upper left")
     fig.suptitle("scaling on the grid scenario")
     return _save(fig, out / "scaling.png")
 
