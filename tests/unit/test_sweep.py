@@ -176,8 +176,12 @@ def test_report_writes_html_with_figures(tmp_path):
     pytest.importorskip("matplotlib")
     plan = load_sweep(write(tmp_path, TINY))
     run_sweep(plan, tmp_path / "o", FlakyExecutor(set()), progress=False, report=lambda m: None)
-    assert main(["experiment", "scaling", "--landmarks", "20,40", "--steps", "30", "--out", str(tmp_path / "o")]) == 0
-    assert main(["experiment", "consistency", "--seeds", "3", "--steps", "20", "--out", str(tmp_path / "o")]) == 0
+    o = tmp_path / "o"
+    assert main(["experiment", "scaling", "--set", "landmarks=20,40", "--set", "steps=30",
+                 "--json", str(o / "scaling.json")]) == 0
+    assert main(["experiment", "consistency", "--seeds", "3", "--set", "steps=20",
+                 "--json", str(o / "consistency.json")]) == 0
+    assert main(["experiment", "scaling", "--set", "landmark=5"]) == 2  # unknown key, named
     assert main(["report", str(tmp_path / "o")]) == 0
     page = (tmp_path / "o" / "report" / "index.html").read_text()
     for img in ("ate_boxplot.png", "sweep_nees.png", "scaling.png", "consistency_nees.png"):

@@ -1,132 +1,153 @@
 """``slam2d experiment scaling|consistency``: the lab experiments of :mod:`slam2d.lab.experiments`.
 
-``EXPERIMENTS`` maps a name to an :class:`Experiment` (help text, ``add_arguments(parser)``, ``run(args) -> int``;
-calling it with an argv list parses and runs). ``register`` adds an ``experiment`` command with one sub-command
-per entry when no other module has claimed that name yet; :func:`add_to` adds the entries to an existing
-``experiment`` command's sub-parsers, so two experiment catalogues can share one command.
+Same shape as the association catalogue (``slam2d.cli.experiment``): ``EXPERIMENTS`` maps a name to a function
+``(seeds, overrides) -> ExperimentOutput`` whose ``--set KEY=VALUE`` overrides are validated against the
+experiment's own config dataclass, so the two dicts can be merged into one ``slam2d experiment`` command.
+``register`` adds that command only when no other module has claimed the name.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
-from slam2d.cli.common import add_set_argument, overrides_from, print_table
+from slam2d.cli.common import add_set_argument, overrides_from, print_table, write_json
+from slam2d.config import check_positive, with_overrides
 
 
 @dataclass(frozen=True)
-class Experiment:
-    help: str
-    add_arguments: Callable[[argparse.ArgumentParser], None]
-    run: Callable[[argparse.Namespace], int]
+class ExperimentOutput:
+    """What an experiment hands back to the command: table rows, the columns to print, and the JSON record."""
 
-    def __call__(self, argv: Sequence[str]) -> int:
-        p = argparse.ArgumentParser(prog="slam2d experiment", description=self.help)
-        self.add_arguments(p)
-        return self.run(p.parse_args(list(argv)))
+    rows: list[dict[str, Any]]
+    columns: list[str]
+    record: dict[str, Any]
+    title: str = ""
 
 
-def _ints(text: str) -> list[int]:
-    try:
-        vals = [int(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got {text!r}") from None
-    if not vals or min(vals) < 1:
-        raise argparse.ArgumentTypeError(f"expected positive integers, got {text!r}")
-    return vals
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ScalingExperimentConfig:
+    """Settings of ``slam2d experiment scaling`` (only the first seed is used: it is a timing, not a statistic)."""
+
+    estimators: tuple[str, ...] = ()
+    """estimators to time (empty: every registered one)."""
+    landmarks: tuple[int, ...] = (100, 400, 1600, 6400)
+    """landmark counts N of the grid scenario."""
+    steps: int = 0
+    """steps per run (0: one lap of the grid's circle plus 15 %)."""
+    dt_s: float = 0.5
+    """time step of the simulated runs (s); larger steps make the laps of big grids affordable."""
+    max_run_s: float = 120.0
+    """an estimator stops at the first N whose run takes longer than this (s)."""
+    blas_threads: int = 1
+    """BLAS threads while timing (0: leave BLAS as it is)."""
+
+    def __post_init__(self) -> None:
+        if not self.landmarks or min(self.landmarks) < 1:
+            raise ValueError(f"ScalingExperimentConfig.landmarks must be positive counts (got {self.landmarks})")
+        if self.steps < 0 or self.blas_threads < 0:
+            raise ValueError("ScalingExperimentConfig.steps and blas_threads must be >= 0")
+        check_positive(self, "dt_s", "max_run_s")
 
 
-def _names(text: str) -> list[str]:
-    return [v.strip() for v in text.split(",") if v.strip()]
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ConsistencyExperimentConfig:
+    """Settings of ``slam2d experiment consistency`` (Monte-Carlo runs = the seeds)."""
+
+    estimators: tuple[str, ...] = ()
+    """estimators to test (empty: every registered one)."""
+    scenario: str = "room"
+    """simulated scenario."""
+    steps: int = 200
+    """steps per run."""
+    probability: float = 0.95
+    """probability of the two-sided chi-square band."""
+    workers: int = 0
+    """local worker processes for the runs (0: serial)."""
+
+    def __post_init__(self) -> None:
+        if self.steps < 1:
+            raise ValueError(f"ConsistencyExperimentConfig.steps must be >= 1 (got {self.steps})")
+        if not 0 < self.probability < 1:
+            raise ValueError(f"ConsistencyExperimentConfig.probability must be in (0, 1) (got {self.probability})")
+        if self.workers < 0:
+            raise ValueError(f"ConsistencyExperimentConfig.workers must be >= 0 (got {self.workers})")
 
 
-def _save(out: str | None, name: str, result: dict[str, Any]) -> None:
-    if out:
-        p = Path(out)
-        p.mkdir(parents=True, exist_ok=True)
-        (p / f"{name}.json").write_text(json.dumps(result, indent=1, sort_keys=True, default=float) + "\n")
-        print(f"wrote {p / f'{name}.json'} (draw it with: slam2d report {p})")
-
-
-def _scaling_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--estimators", type=_names, default=None, help="comma-separated (default: all registered)")
-    p.add_argument("--landmarks", type=_ints, default=[100, 400, 1600, 6400], help="comma-separated N values")
-    p.add_argument("--steps", type=int, default=None, help="steps per run (default: one lap of the grid + 15%%)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--max-run-s", type=float, default=120.0, help="stop an estimator after a run longer than this")
-    p.add_argument("--blas-threads", type=int, default=1, help="BLAS threads while timing (0: leave as is)")
-    p.add_argument("--out", default=None, metavar="DIR", help="write DIR/scaling.json")
-    add_set_argument(p)
-
-
-def _scaling_run(args: argparse.Namespace) -> int:
+def _scaling(seeds: Sequence[int], overrides: Mapping[str, str]) -> ExperimentOutput:
     from slam2d.lab.experiments import scaling
 
-    res = scaling(args.estimators, args.landmarks, seed=args.seed, steps=args.steps, overrides=overrides_from(args),
-                  max_run_s=args.max_run_s, blas_threads=args.blas_threads or None, report=print)
-    print_table(res["rows"], ["estimator", "landmarks", "mapped", "obs_per_step", "step_ms_median", "steps"])
+    cfg = with_overrides(ScalingExperimentConfig(), dict(overrides))
+    res = scaling(cfg.estimators or None, cfg.landmarks, seed=seeds[0], steps=cfg.steps or None,
+                  overrides={"dt_s": cfg.dt_s}, max_run_s=cfg.max_run_s, blas_threads=cfg.blas_threads or None,
+                  report=print)
+    rows = [{"estimator": k, **v} for k, v in res["fits"].items()]
+    print_table(res["rows"], ["estimator", "landmarks", "mapped", "obs_per_step", "step_ms_median",
+                              "wall_step_ms_median", "steps"])
     print()
-    print_table([{"estimator": k, **v} for k, v in res["fits"].items()],
-                ["estimator", "slope_vs_mapped", "end_slope_vs_mapped", "slope_vs_landmarks", "claim", "points"])
-    _save(args.out, "scaling", res)
-    return 0
+    return ExperimentOutput(rows, ["estimator", "slope_vs_mapped", "end_slope_vs_mapped", "slope_vs_landmarks",
+                                   "claim", "points"], res,
+                            f"log-log slopes of CPU time per step (grid scenario, seed {seeds[0]})")
 
 
-def _consistency_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--estimators", type=_names, default=None, help="comma-separated (default: all registered)")
-    p.add_argument("--scenario", default="room")
-    p.add_argument("--seeds", type=int, default=20, help="Monte-Carlo runs per estimator")
-    p.add_argument("--steps", type=int, default=200)
-    p.add_argument("--probability", type=float, default=0.95, help="two-sided band probability")
-    p.add_argument("--workers", type=int, default=None, help="local processes (default: serial)")
-    p.add_argument("--out", default=None, metavar="DIR", help="write DIR/consistency.json")
-    add_set_argument(p)
-
-
-def _consistency_run(args: argparse.Namespace) -> int:
+def _consistency(seeds: Sequence[int], overrides: Mapping[str, str]) -> ExperimentOutput:
     from slam2d.lab.experiments import consistency
     from slam2d.lab.sweep import make_executor
 
-    kw = dict(scenario=args.scenario, seeds=args.seeds, steps=args.steps, overrides=overrides_from(args),
-              probability=args.probability, report=print)
-    if args.workers:
-        with make_executor(args.workers) as ex:
-            res = consistency(args.estimators, executor=ex, **kw)  # type: ignore[arg-type]
+    cfg = with_overrides(ConsistencyExperimentConfig(), dict(overrides))
+    if list(seeds) != list(range(seeds[0], seeds[0] + len(seeds))) or seeds[0] != 0:
+        raise ValueError("the consistency experiment uses seeds 0..N-1: give --seeds N without --first-seed")
+    kw: dict[str, Any] = dict(scenario=cfg.scenario, seeds=len(seeds), steps=cfg.steps, probability=cfg.probability,
+                              report=print)
+    if cfg.workers:
+        with make_executor(cfg.workers) as ex:
+            res = consistency(cfg.estimators or None, executor=ex, **kw)
     else:
-        res = consistency(args.estimators, **kw)  # type: ignore[arg-type]
+        res = consistency(cfg.estimators or None, **kw)
     rows = [{"estimator": k, "overall_mean": v["overall_mean"], "band_low": v["band"][0], "band_high": v["band"][1],
              "fraction_inside": v["fraction_inside"], "ate_rmse_m_mean": v["ate_rmse_m_mean"]}
             for k, v in res["results"].items()]
-    print_table(rows, ["estimator", "overall_mean", "band_low", "band_high", "fraction_inside", "ate_rmse_m_mean"])
-    for k, why in res["skipped"].items():
-        print(f"skipped {k}: {why}")
-    _save(args.out, "consistency", res)
-    return 0
+    rows += [{"estimator": k, "overall_mean": f"skipped: {why}"} for k, why in res["skipped"].items()]
+    return ExperimentOutput(rows, ["estimator", "overall_mean", "band_low", "band_high", "fraction_inside",
+                                   "ate_rmse_m_mean"], res,
+                            f"pose NEES on '{cfg.scenario}' over {len(seeds)} seeds, "
+                            f"{100 * cfg.probability:.0f} % band per step")
 
 
-EXPERIMENTS: dict[str, Experiment] = {
-    "scaling": Experiment("time per step vs number of landmarks for every estimator, with log-log slopes",
-                          _scaling_args, _scaling_run),
-    "consistency": Experiment("pose NEES over Monte-Carlo seeds against the chi-square band",
-                              _consistency_args, _consistency_run),
+#: experiment name -> function(seeds, overrides) -> ExperimentOutput
+EXPERIMENTS: dict[str, Callable[[Sequence[int], Mapping[str, str]], ExperimentOutput]] = {
+    "scaling": _scaling,
+    "consistency": _consistency,
 }
 
 
-def add_to(experiment_subparsers: Any) -> None:
-    """Add one sub-command per entry of ``EXPERIMENTS`` to an ``experiment`` command's sub-parsers."""
-    for name, exp in EXPERIMENTS.items():
-        p = experiment_subparsers.add_parser(name, help=exp.help, description=exp.help)
-        exp.add_arguments(p)
-        p.set_defaults(func=exp.run)
-
-
 def register(sub: Any) -> None:
-    if "experiment" in sub.choices:  # another catalogue owns the command; it can call add_to()
+    if "experiment" in sub.choices:  # another catalogue owns the command; merge EXPERIMENTS into it
         return
-    p = sub.add_parser("experiment", help="run a lab experiment (scaling, consistency)",
-                       description="Run a lab experiment over every registered estimator.")
-    add_to(p.add_subparsers(dest="experiment", metavar="NAME", required=True))
+    p = sub.add_parser("experiment", help="run a named experiment over seeds and print its table",
+                       description="Run a named experiment (scaling: time per step vs landmarks; consistency: pose "
+                                   "NEES vs the chi-square band) over every registered estimator. --json OUT writes "
+                                   "the record; put it in DIR as scaling.json / consistency.json for "
+                                   "'slam2d report DIR'.")
+    p.add_argument("name", choices=sorted(EXPERIMENTS), help="which experiment")
+    p.add_argument("--seeds", type=int, default=20, help="number of seeds (default 20)")
+    p.add_argument("--first-seed", type=int, default=0, help="first seed (default 0)")
+    p.add_argument("--json", dest="json_out", metavar="OUT", help="write the results as JSON to OUT")
+    add_set_argument(p)
+    p.set_defaults(func=cmd)
+
+
+def cmd(args: argparse.Namespace) -> int:
+    if args.seeds < 1:
+        raise ValueError(f"--seeds must be >= 1 (got {args.seeds})")
+    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    out = EXPERIMENTS[args.name](seeds, overrides_from(args))
+    if out.title:
+        print(out.title)
+    print_table(out.rows, out.columns)
+    if args.json_out:
+        write_json(args.json_out, out.record)
+        print(f"wrote {args.json_out}")
+    return 0
