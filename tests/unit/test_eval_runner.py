@@ -1,5 +1,7 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import slam2d
 from slam2d.eval import align_se2, ate, rpe
@@ -99,3 +101,13 @@ def test_run_cli_association_option_reaches_the_estimator(tmp_path):
     rec = json.loads(out.read_text())
     assert rec["estimator_config"]["association"]["method"] == "mahalanobis"
     assert 0.9 < rec["assoc_precision"] <= 1.0 and 0.9 < rec["assoc_recall"] <= 1.0
+@settings(max_examples=25)
+@given(tx=st.floats(-100, 100), ty=st.floats(-100, 100), th=st.floats(-np.pi, np.pi), seed=st.integers(0, 2**31))
+def test_ate_and_rpe_are_blind_to_any_rigid_motion_of_the_estimate(tx, ty, th, seed):
+    traj = np.cumsum(np.random.default_rng(seed).normal(size=(40, 3)), axis=0)
+    moved = compose(np.array([tx, ty, th]), traj)
+    assert ate(moved, traj).rmse_m < 1e-8
+    # the recovered alignment is the inverse of the applied motion
+    np.testing.assert_allclose(compose(ate(moved, traj).alignment, np.array([tx, ty, th])), [0, 0, 0], atol=1e-8)
+    r = rpe(moved, traj, delta=3)
+    assert r.trans_rmse_m < 1e-8 and r.rot_rmse_rad < 1e-8

@@ -1,5 +1,9 @@
 """``slam2d experiment NAME``: run a named experiment over seeds, print its table, optionally write JSON.
 
+Experiments: ``association`` (method comparison on the scramble scenario), ``scaling`` (time per step vs number of
+landmarks, log-log slopes), ``consistency`` (pose NEES against the chi-square band). ``--json OUT`` writes the
+record; put it in DIR as scaling.json / consistency.json for ``slam2d report DIR``.
+
 Experiments are registered in ``EXPERIMENTS`` (name -> function). Each function takes the parsed seeds and the
 ``--set KEY=VALUE`` overrides (validated against the experiment's own config) and returns an :class:`ExperimentOutput`.
 """
@@ -12,6 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from slam2d.cli.common import add_set_argument, overrides_from, print_table, write_json
+from slam2d.config import check_positive, with_overrides
 
 
 @dataclass(frozen=True)
@@ -42,9 +47,100 @@ def _association(seeds: Sequence[int], overrides: Mapping[str, str]) -> Experime
     return ExperimentOutput(result.rows(), cols, summary_record(result), title)
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ScalingExperimentConfig:
+    """Settings of ``slam2d experiment scaling`` (only the first seed is used: it is a timing, not a statistic)."""
+
+    estimators: tuple[str, ...] = ()
+    """estimators to time (empty: every registered one)."""
+    landmarks: tuple[int, ...] = (100, 400, 1600, 6400)
+    """landmark counts N of the grid scenario."""
+    steps: int = 0
+    """steps per run (0: one lap of the grid's circle plus 15 %)."""
+    dt_s: float = 0.5
+    """time step of the simulated runs (s); larger steps make the laps of big grids affordable."""
+    max_run_s: float = 120.0
+    """an estimator stops at the first N whose run takes longer than this (s)."""
+    blas_threads: int = 1
+    """BLAS threads while timing (0: leave BLAS as it is)."""
+
+    def __post_init__(self) -> None:
+        if not self.landmarks or min(self.landmarks) < 1:
+            raise ValueError(f"ScalingExperimentConfig.landmarks must be positive counts (got {self.landmarks})")
+        if self.steps < 0 or self.blas_threads < 0:
+            raise ValueError("ScalingExperimentConfig.steps and blas_threads must be >= 0")
+        check_positive(self, "dt_s", "max_run_s")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ConsistencyExperimentConfig:
+    """Settings of ``slam2d experiment consistency`` (Monte-Carlo runs = the seeds)."""
+
+    estimators: tuple[str, ...] = ()
+    """estimators to test (empty: every registered one)."""
+    scenario: str = "room"
+    """simulated scenario."""
+    steps: int = 200
+    """steps per run."""
+    probability: float = 0.95
+    """probability of the two-sided chi-square band."""
+    workers: int = 0
+    """local worker processes for the runs (0: serial)."""
+
+    def __post_init__(self) -> None:
+        if self.steps < 1:
+            raise ValueError(f"ConsistencyExperimentConfig.steps must be >= 1 (got {self.steps})")
+        if not 0 < self.probability < 1:
+            raise ValueError(f"ConsistencyExperimentConfig.probability must be in (0, 1) (got {self.probability})")
+        if self.workers < 0:
+            raise ValueError(f"ConsistencyExperimentConfig.workers must be >= 0 (got {self.workers})")
+
+
+def _scaling(seeds: Sequence[int], overrides: Mapping[str, str]) -> ExperimentOutput:
+    from slam2d.lab.experiments import scaling
+
+    cfg = with_overrides(ScalingExperimentConfig(), dict(overrides))
+    res = scaling(cfg.estimators or None, cfg.landmarks, seed=seeds[0], steps=cfg.steps or None,
+                  overrides={"dt_s": cfg.dt_s}, max_run_s=cfg.max_run_s, blas_threads=cfg.blas_threads or None,
+                  report=print)
+    rows = [{"estimator": k, **v} for k, v in res["fits"].items()]
+    print_table(res["rows"], ["estimator", "landmarks", "mapped", "obs_per_step", "step_ms_median",
+                              "wall_step_ms_median", "steps"])
+    print()
+    return ExperimentOutput(rows, ["estimator", "slope_vs_mapped", "end_slope_vs_mapped", "slope_vs_landmarks",
+                                   "claim", "points"], res,
+                            f"log-log slopes of CPU time per step (grid scenario, seed {seeds[0]})")
+
+
+def _consistency(seeds: Sequence[int], overrides: Mapping[str, str]) -> ExperimentOutput:
+    from slam2d.lab.experiments import consistency
+    from slam2d.lab.sweep import make_executor
+
+    cfg = with_overrides(ConsistencyExperimentConfig(), dict(overrides))
+    if list(seeds) != list(range(seeds[0], seeds[0] + len(seeds))) or seeds[0] != 0:
+        raise ValueError("the consistency experiment uses seeds 0..N-1: give --seeds N without --first-seed")
+    kw: dict[str, Any] = dict(scenario=cfg.scenario, seeds=len(seeds), steps=cfg.steps, probability=cfg.probability,
+                              report=print)
+    if cfg.workers:
+        with make_executor(cfg.workers) as ex:
+            res = consistency(cfg.estimators or None, executor=ex, **kw)
+    else:
+        res = consistency(cfg.estimators or None, **kw)
+    rows = [{"estimator": k, "overall_mean": v["overall_mean"], "band_low": v["band"][0], "band_high": v["band"][1],
+             "fraction_inside": v["fraction_inside"], "ate_rmse_m_mean": v["ate_rmse_m_mean"]}
+            for k, v in res["results"].items()]
+    rows += [{"estimator": k, "overall_mean": f"skipped: {why}"} for k, why in res["skipped"].items()]
+    return ExperimentOutput(rows, ["estimator", "overall_mean", "band_low", "band_high", "fraction_inside",
+                                   "ate_rmse_m_mean"], res,
+                            f"pose NEES on '{cfg.scenario}' over {len(seeds)} seeds, "
+                            f"{100 * cfg.probability:.0f} % band per step")
+
+
 #: experiment name -> function(seeds, overrides) -> ExperimentOutput; add new experiments here
 EXPERIMENTS: dict[str, Callable[[Sequence[int], Mapping[str, str]], ExperimentOutput]] = {
     "association": _association,
+    "scaling": _scaling,
+    "consistency": _consistency,
 }
 
 

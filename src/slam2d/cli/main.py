@@ -15,6 +15,8 @@ COMMANDS = [
     "slam2d.cli.run",
     "slam2d.cli.demo",
     "slam2d.cli.experiment",
+    "slam2d.cli.sweep",
+    "slam2d.cli.report",
 ]
 
 

@@ -1,0 +1,1 @@
+"""Reading and writing files: trajectory export (TUM), graph formats, dataset loaders."""
