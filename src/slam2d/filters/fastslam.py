@@ -114,6 +114,9 @@ class FastSLAMConfig:
     candidate_margin_m: float = 2.0
     """per-particle ML only: landmarks farther than (largest observed range + this) from a particle are not
     considered as matches (m); keeps the per-observation cost proportional to the landmarks in view."""
+    association_candidates: int = 4
+    """per-particle ML only: the exact likelihood is evaluated for this many landmarks per particle and observation,
+    those nearest (Euclidean, world frame) to where the particle places the observation."""
     motion: MotionNoise = field(default_factory=MotionNoise)
     """odometry noise assumed by the filter (filled from the log's metadata by the registry)."""
     sensor: SensorConfig = field(default_factory=SensorConfig)
@@ -128,6 +131,9 @@ class FastSLAMConfig:
             raise ValueError(f"{type(self).__name__}.version must be 1 or 2 (got {self.version!r})")
         check_probability(self, "resample_threshold")
         check_positive(self, "new_landmark_likelihood", "candidate_margin_m")
+        if not isinstance(self.association_candidates, int) or self.association_candidates < 1:
+            raise ValueError(f"{type(self).__name__}.association_candidates must be an integer >= 1 "
+                             f"(got {self.association_candidates!r})")
         if not isinstance(self.initial_capacity, int) or self.initial_capacity < 1:
             raise ValueError(f"{type(self).__name__}.initial_capacity must be an integer >= 1 "
                              f"(got {self.initial_capacity!r})")
@@ -269,6 +275,37 @@ def motion_gaussian(poses: Array, u: Array, noise: MotionNoise) -> tuple[Array, 
     return mean, 0.5 * (cov + np.swapaxes(cov, -1, -2))
 
 
+def _observe(poses: Array, lm: Array) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """Predicted range, bearing and the landmark Jacobian H_m entries, element-wise (fast for small batches).
+
+    Returns (range, bearing (unwrapped), h00, h01, h10, h11) with ``H_m = [[h00, h01], [h10, h11]]``; the pose
+    Jacobian is ``H_x = [-H_m | (0, -1)^T]`` (Probabilistic Robotics eq. 10.18, see ``range_bearing_jacobians``).
+    Shapes: poses (...,3), lm (...,2) -> six (...) arrays.
+    """
+    dx, dy = lm[..., 0] - poses[..., 0], lm[..., 1] - poses[..., 1]
+    q = dx * dx + dy * dy
+    rng = np.sqrt(q)
+    bearing = np.arctan2(dy, dx) - poses[..., 2]
+    return rng, bearing, dx / rng, dy / rng, -dy / q, dx / q
+
+
+def _congruence2(h00: Array, h01: Array, h10: Array, h11: Array, s00: Array, s01: Array,
+                 s11: Array) -> tuple[Array, Array, Array, Array, Array, Array, Array]:
+    """``H S H^T`` for symmetric 2x2 S, element-wise; also returns ``T = H S`` (t00, t01, t10, t11)."""
+    t00, t01 = h00 * s00 + h01 * s01, h00 * s01 + h01 * s11
+    t10, t11 = h10 * s00 + h11 * s01, h10 * s01 + h11 * s11
+    return t00 * h00 + t01 * h01, t00 * h10 + t01 * h11, t10 * h10 + t11 * h11, t00, t01, t10, t11
+
+
+def _logpdf2_sym(n0: Array, n1: Array, s00: Array, s01: Array, s11: Array) -> Array:
+    """log N([n0, n1]; 0, [[s00, s01], [s01, s11]]) element-wise; -inf where S is not positive definite."""
+    det = s00 * s11 - s01 * s01
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d2 = (s11 * n0 * n0 - 2.0 * s01 * n0 * n1 + s00 * n1 * n1) / det
+        out = -0.5 * d2 - _LOG_2PI - 0.5 * np.log(det)
+    return np.where((det > 0) & (s00 > 0) & np.isfinite(out), out, -np.inf)
+
+
 def landmark_init(poses: Array, z: Array, r: Array) -> tuple[Array, Array]:
     """New landmark EKF from one observation: mean ``g^-1(x, z)``, covariance ``G_z R G_z^T``.
 
@@ -281,23 +318,31 @@ def landmark_init(poses: Array, z: Array, r: Array) -> tuple[Array, Array]:
 
 
 def landmark_update(poses: Array, z: Array, mean: Array, cov: Array, r: Array) -> tuple[Array, Array, Array]:
-    """EKF update of each particle's landmark with observation ``z`` taken at a known pose (Joseph form).
+    """EKF update of each particle's landmark with observation ``z`` taken at a known pose.
 
-    Returns (new mean, new cov, log N(z; h(x, mu), H Sigma H^T + R)) -- the FastSLAM 1.0 importance weight.
+    ``S = H Sigma H^T + R``, ``K = Sigma H^T S^-1``, ``mu' = mu + K nu``, ``Sigma' = Sigma - K S K^T``.
+    Returns (new mean, new cov, log N(z; h(x, mu), S)) -- the last is the FastSLAM 1.0 importance weight.
+    Written element-wise over the 2x2 blocks because numpy's stacked matmul is slow for tiny matrices.
     Shapes: poses (M,3), z (2,), mean (M,2), cov (M,2,2), r (2,2) -> (M,2), (M,2,2), (M,).
     References: Probabilistic Robotics table 13.1.
     """
-    z_hat = range_bearing(poses, mean)
-    _, h = range_bearing_jacobians(poses, mean)
-    ht = np.swapaxes(h, -1, -2)
-    s = h @ cov @ ht + r
-    s_inv, _ = _inv2(s)
-    k = cov @ ht @ s_inv
-    nu = _innovation(np.broadcast_to(z, z_hat.shape), z_hat)
-    new_mean = mean + np.einsum("...ij,...j->...i", k, nu)
-    a = np.eye(2) - k @ h
-    new_cov = a @ cov @ np.swapaxes(a, -1, -2) + k @ r @ np.swapaxes(k, -1, -2)
-    return new_mean, 0.5 * (new_cov + np.swapaxes(new_cov, -1, -2)), gaussian_logpdf2(nu, s)
+    rng, bearing, h00, h01, h10, h11 = _observe(poses, mean)
+    s00, s01, s11 = cov[..., 0, 0], 0.5 * (cov[..., 0, 1] + cov[..., 1, 0]), cov[..., 1, 1]
+    a00, a01, a11, t00, t01, t10, t11 = _congruence2(h00, h01, h10, h11, s00, s01, s11)
+    a00, a01, a11 = a00 + r[0, 0], a01 + 0.5 * (r[0, 1] + r[1, 0]), a11 + r[1, 1]
+    det = a00 * a11 - a01 * a01
+    i00, i01, i11 = a11 / det, -a01 / det, a00 / det
+    # U = S^-1 T; K = T^T S^-1 = U^T; Sigma' = Sigma - T^T S^-1 T = Sigma - T^T U
+    u00, u01 = i00 * t00 + i01 * t10, i00 * t01 + i01 * t11
+    u10, u11 = i01 * t00 + i11 * t10, i01 * t01 + i11 * t11
+    n0 = z[..., 0] - rng
+    n1 = wrap_angle(z[..., 1] - bearing)
+    new_mean = np.stack([mean[..., 0] + u00 * n0 + u10 * n1, mean[..., 1] + u01 * n0 + u11 * n1], axis=-1)
+    c00 = s00 - (t00 * u00 + t10 * u10)
+    c01 = s01 - (t00 * u01 + t10 * u11)
+    c11 = s11 - (t01 * u01 + t11 * u11)
+    new_cov = np.stack([np.stack([c00, c01], axis=-1), np.stack([c01, c11], axis=-1)], axis=-2)
+    return new_mean, new_cov, _logpdf2_sym(n0, n1, a00, a01, a11)
 
 
 def proposal_update(
@@ -469,14 +514,32 @@ class FastSLAM:
         if cand.shape[1] == 0:
             return np.zeros(m, dtype=np.int64), np.ones(m, dtype=bool)
         rows = np.arange(m)[:, None]
+        n_near = self.config.association_candidates
+        if cand.shape[1] > n_near:
+            # cheap pre-selection: the n_near landmarks nearest (Euclidean, world frame) to where this particle
+            # places the observation; the exact likelihood is then evaluated for those only
+            a = poses[:, 2] + z[1]
+            ox, oy = poses[:, 0] + z[0] * np.cos(a), poses[:, 1] + z[0] * np.sin(a)
+            mu_all = p.lm_mean[rows, cand]
+            d2 = np.where(valid, (mu_all[..., 0] - ox[:, None]) ** 2 + (mu_all[..., 1] - oy[:, None]) ** 2, np.inf)
+            near = np.argpartition(d2, n_near - 1, axis=1)[:, :n_near]
+            cand, valid = cand[rows, near], valid[rows, near]
         mu, sig = p.lm_mean[rows, cand], p.lm_cov[rows, cand]
-        pose_b = np.broadcast_to(poses[:, None, :], (*cand.shape, 3))
-        z_hat = range_bearing(pose_b, mu)
-        hx, hm = range_bearing_jacobians(pose_b, mu)
-        s = hm @ sig @ np.swapaxes(hm, -1, -2) + self.config.sensor.covariance
+        r = self.config.sensor.covariance
+        rng, bearing, h00, h01, h10, h11 = _observe(poses[:, None, :], mu)
+        s00, s01, s11 = sig[..., 0, 0], sig[..., 0, 1], sig[..., 1, 1]
+        g0 = g1 = p22 = np.zeros(1)
         if pose_cov is not None:
-            s = s + hx @ pose_cov[:, None] @ np.swapaxes(hx, -1, -2)
-        ll = gaussian_logpdf2(_innovation(np.broadcast_to(z, z_hat.shape), z_hat), s)
+            # H_x P H_x^T with H_x = [-H_m | (0,-1)^T]: H_m (Sigma + P_xy) H_m^T + [[0, g0], [g0, 2 g1 + P_tt]],
+            # where g = H_m P[:2, 2] (expanded by hand; see _observe)
+            s00 = s00 + pose_cov[:, None, 0, 0]
+            s01 = s01 + pose_cov[:, None, 0, 1]
+            s11 = s11 + pose_cov[:, None, 1, 1]
+            c0, c1 = pose_cov[:, None, 0, 2], pose_cov[:, None, 1, 2]
+            g0, g1, p22 = h00 * c0 + h01 * c1, h10 * c0 + h11 * c1, pose_cov[:, None, 2, 2]
+        a00, a01, a11, *_ = _congruence2(h00, h01, h10, h11, s00, s01, s11)
+        a00, a01, a11 = a00 + r[0, 0], a01 + r[0, 1] + g0, a11 + r[1, 1] + 2.0 * g1 + p22
+        ll = _logpdf2_sym(z[0] - rng, wrap_angle(z[1] - bearing), a00, a01, a11)
         ll = np.where(valid, ll, -np.inf)
         best = np.argmax(ll, axis=1)
         best_ll = ll[np.arange(m), best]
@@ -495,6 +558,22 @@ class FastSLAM:
             c = np.where(is_new, p.lm_count, c)
             p.lm_count += is_new
         return c, is_new
+
+    def _update_landmarks(self, poses: Array, z: Array, c: IntArray, is_new: BoolArray) -> Array:
+        """EKF-update slot c of each particle (or initialise it where ``is_new``); returns the update log-likelihoods.
+
+        Shapes: poses (M,3), z (2,), c (M,), is_new (M,) -> (M,) (meaningless where is_new)."""
+        p = self.particles
+        rows = np.arange(p.size)
+        r = self.config.sensor.covariance
+        mu, sig, ll = landmark_update(poses, z, p.lm_mean[rows, c], p.lm_cov[rows, c], r)
+        if is_new.any():
+            mu0, sig0 = landmark_init(poses[is_new], z, r)
+            mu[is_new], sig[is_new] = mu0, sig0
+        p.lm_mean[rows, c] = mu
+        p.lm_cov[rows, c] = sig
+        p.lm_evidence[rows, c] = np.where(is_new, _EVIDENCE_NEW, p.lm_evidence[rows, c] + 1)
+        return ll
 
     # -- one step ------------------------------------------------------------------------------------------------
 
@@ -534,11 +613,7 @@ class FastSLAM:
             for j in use:
                 z = z_all[j]
                 c, is_new = self._decide(int(ids[j]), poses, None, z, cand, valid)
-                mu, sig, ll = landmark_update(poses, z, p.lm_mean[rows, c], p.lm_cov[rows, c], r)
-                mu0, sig0 = landmark_init(poses, z, r)
-                p.lm_mean[rows, c] = np.where(is_new[:, None], mu0, mu)
-                p.lm_cov[rows, c] = np.where(is_new[:, None, None], sig0, sig)
-                p.lm_evidence[rows, c] = np.where(is_new, _EVIDENCE_NEW, p.lm_evidence[rows, c] + 1)
+                ll = self._update_landmarks(poses, z, c, is_new)
                 dlogw += np.where(is_new, log_p0, ll)
                 assoc_slots[j] = c
         else:
@@ -566,12 +641,7 @@ class FastSLAM:
             # landmark EKFs at the drawn pose, in the order the observations were incorporated
             for j, c, is_new in decisions:
                 z = z_all[j]
-                fresh = is_new & (p.lm_evidence[rows, c] == 0)
-                mu, sig, _ = landmark_update(poses, z, p.lm_mean[rows, c], p.lm_cov[rows, c], r)
-                mu0, sig0 = landmark_init(poses, z, r)
-                p.lm_mean[rows, c] = np.where(fresh[:, None], mu0, mu)
-                p.lm_cov[rows, c] = np.where(fresh[:, None, None], sig0, sig)
-                p.lm_evidence[rows, c] = np.where(fresh, _EVIDENCE_NEW, p.lm_evidence[rows, c] + 1)
+                self._update_landmarks(poses, z, c, is_new & (p.lm_evidence[rows, c] == 0))
         p.poses = poses
 
         if not self.known:
