@@ -352,7 +352,7 @@ def proposal_update(
 
     With ``Q_z = H_m Sigma H_m^T + R`` (landmark uncertainty plus sensor noise), the proposal is updated like a
     Kalman filter whose state is the pose: ``S = H_x P H_x^T + Q_z``, ``K = P H_x^T S^-1``,
-    ``x' = x_hat + K nu``, ``P' = (I - K H_x) P (I - K H_x)^T + K Q_z K^T``; this equals the information form
+    ``x' = x_hat + K nu``, ``P' = P - K S K^T``; this equals the information form
     ``P' = (H_x^T Q_z^-1 H_x + P^-1)^-1``, ``x' = x_hat + P' H_x^T Q_z^-1 nu`` of Montemerlo et al. 2003 (eq. 11-12)
     and Probabilistic Robotics eq. 13.42-13.43, without inverting P. The returned log-likelihood
     ``log N(z; h(x_hat, mu), S)`` is the observation's importance-weight factor (table 13.2).
@@ -360,19 +360,28 @@ def proposal_update(
     Shapes: pose_mean (M,3), pose_cov (M,3,3), z (2,), lm_mean (M,2), lm_cov (M,2,2), r (2,2)
     -> (M,3), (M,3,3), (M,).
     """
-    z_hat = range_bearing(pose_mean, lm_mean)
-    hx, hm = range_bearing_jacobians(pose_mean, lm_mean)
-    q = hm @ lm_cov @ np.swapaxes(hm, -1, -2) + r
-    hxt = np.swapaxes(hx, -1, -2)
-    s = hx @ pose_cov @ hxt + q
-    s_inv, _ = _inv2(s)
-    k = pose_cov @ hxt @ s_inv
-    nu = _innovation(np.broadcast_to(z, z_hat.shape), z_hat)
-    new_mean = pose_mean + np.einsum("...ij,...j->...i", k, nu)
+    rng, bearing, h00, h01, h10, h11 = _observe(pose_mean, lm_mean)
+    s00, s01, s11 = lm_cov[..., 0, 0], 0.5 * (lm_cov[..., 0, 1] + lm_cov[..., 1, 0]), lm_cov[..., 1, 1]
+    q00, q01, q11, *_ = _congruence2(h00, h01, h10, h11, s00, s01, s11)
+    q00, q01, q11 = q00 + r[0, 0], q01 + 0.5 * (r[0, 1] + r[1, 0]), q11 + r[1, 1]
+    # H_x = [[-h00, -h01, 0], [-h10, -h11, -1]]; columns of C = P H_x^T, element-wise (3 rows each)
+    p = pose_cov
+    c0 = -(p[..., :, 0] * h00[..., None] + p[..., :, 1] * h01[..., None])
+    c1 = -(p[..., :, 0] * h10[..., None] + p[..., :, 1] * h11[..., None] + p[..., :, 2])
+    a00 = -(h00 * c0[..., 0] + h01 * c0[..., 1]) + q00
+    a01 = -(h00 * c1[..., 0] + h01 * c1[..., 1]) + q01
+    a11 = -(h10 * c1[..., 0] + h11 * c1[..., 1] + c1[..., 2]) + q11
+    det = a00 * a11 - a01 * a01
+    i00, i01, i11 = a11 / det, -a01 / det, a00 / det
+    k0 = c0 * i00[..., None] + c1 * i01[..., None]  # K = C S^-1, column 0 (...,3)
+    k1 = c0 * i01[..., None] + c1 * i11[..., None]
+    n0 = z[..., 0] - rng
+    n1 = wrap_angle(z[..., 1] - bearing)
+    new_mean = pose_mean + k0 * n0[..., None] + k1 * n1[..., None]
     new_mean[..., 2] = wrap_angle(new_mean[..., 2])
-    a = np.eye(3) - k @ hx
-    new_cov = a @ pose_cov @ np.swapaxes(a, -1, -2) + k @ q @ np.swapaxes(k, -1, -2)
-    return new_mean, 0.5 * (new_cov + np.swapaxes(new_cov, -1, -2)), gaussian_logpdf2(nu, s)
+    # P' = P - K S K^T = P - C K^T
+    new_cov = p - (c0[..., :, None] * k0[..., None, :] + c1[..., :, None] * k1[..., None, :])
+    return new_mean, 0.5 * (new_cov + np.swapaxes(new_cov, -1, -2)), _logpdf2_sym(n0, n1, a00, a01, a11)
 
 
 def sample_gaussian_poses(mean: Array, cov: Array, rng: np.random.Generator) -> Array:
