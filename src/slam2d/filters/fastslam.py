@@ -300,7 +300,8 @@ def _congruence2(h00: Array, h01: Array, h10: Array, h11: Array, s00: Array, s01
 def _logpdf2_sym(n0: Array, n1: Array, s00: Array, s01: Array, s11: Array) -> Array:
     """log N([n0, n1]; 0, [[s00, s01], [s01, s11]]) element-wise; -inf where S is not positive definite."""
     det = s00 * s11 - s01 * s01
-    with np.errstate(divide="ignore", invalid="ignore"):
+    # an absurd outlier may overflow d2 to inf: that is a zero likelihood, handled by normalize_log_weights
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         d2 = (s11 * n0 * n0 - 2.0 * s01 * n0 * n1 + s00 * n1 * n1) / det
         out = -0.5 * d2 - _LOG_2PI - 0.5 * np.log(det)
     return np.where((det > 0) & (s00 > 0) & np.isfinite(out), out, -np.inf)
