@@ -400,7 +400,7 @@ def test_ml_association_equals_brute_force_over_all_landmarks(rng):
         pose_cov = None if version == 1 else np.broadcast_to(np.diag([0.01, 0.02, 0.003]), (10, 3, 3)).copy()
         cand, valid = est._candidates(poses, 50.0)
         log_p0 = math.log(est.config.new_landmark_likelihood)
-        for _ in range(20):
+        for _ in range(8):
             z = np.array([rng.uniform(0.5, 8.0), rng.uniform(-np.pi, np.pi)])
             c, new = est._ml_associate(poses, pose_cov, z, cand, valid)
             c3, new3 = near._ml_associate(poses, pose_cov, z, cand, valid)
@@ -412,7 +412,8 @@ def test_ml_association_equals_brute_force_over_all_landmarks(rng):
                 if pose_cov is not None:
                     s = s + hx @ pose_cov[i] @ np.swapaxes(hx, -1, -2)
                 nu = np.column_stack([z[0] - zh[:, 0], angle_diff(z[1], zh[:, 1])])
-                ll = np.array([multivariate_normal(np.zeros(2), s[k]).logpdf(nu[k]) for k in range(len(slots))])
+                d2 = np.einsum("ki,ki->k", nu, np.linalg.solve(s, nu[..., None])[..., 0])
+                ll = -0.5 * d2 - np.log(2 * np.pi) - 0.5 * np.linalg.slogdet(s)[1]
                 best = int(np.argmax(ll))
                 assert new[i] == (ll[best] < log_p0)
                 if not new[i]:
@@ -468,10 +469,10 @@ def test_same_seed_same_run_different_seed_different_run():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("estimator", ["fastslam", "fastslam2"])
-@pytest.mark.parametrize("method", ["known", "mahalanobis"])
+@pytest.mark.parametrize(("estimator", "method"), [("fastslam", "known"), ("fastslam2", "known"),
+                                                   ("fastslam2", "mahalanobis")])
 def test_room_ate_is_far_below_dead_reckoning(estimator, method):
     _, dr = slam2d.run_named("dead-reckoning", "room", seed=4)
-    _, rec = slam2d.run_named(estimator, "room", seed=4, overrides={"particles": 30, "association.method": method})
+    _, rec = slam2d.run_named(estimator, "room", seed=4, overrides={"particles": 20, "association.method": method})
     assert rec["ate_rmse_m"] < 0.25 * dr["ate_rmse_m"], (rec["ate_rmse_m"], dr["ate_rmse_m"])
     assert abs(rec["landmarks_estimated"] - 30) <= 3

@@ -457,6 +457,7 @@ class FastSLAM:
         self._resampled = False
         self._weight_resets = 0
         self._assoc = np.zeros(0, dtype=np.int64)
+        self._r = self.config.sensor.covariance
 
     @property
     def known(self) -> bool:
@@ -475,6 +476,7 @@ class FastSLAM:
             raise ValueError(f"initial_pose must be a finite (3,) array (got {initial_pose!r})")
         self._p = ParticleSet.create(pose, self.config.particles, self.config.initial_capacity)
         self._rng = rng
+        self._r = self.config.sensor.covariance
         self._id_to_slot, self._slot_ids = {}, []
         self._best = 0
         self._pose, self._pose_cov = pose.copy(), np.zeros((3, 3))
@@ -535,7 +537,7 @@ class FastSLAM:
             near = np.argpartition(d2, n_near - 1, axis=1)[:, :n_near]
             cand, valid = cand[rows, near], valid[rows, near]
         mu, sig = p.lm_mean[rows, cand], p.lm_cov[rows, cand]
-        r = self.config.sensor.covariance
+        r = self._r
         rng, bearing, h00, h01, h10, h11 = _observe(poses[:, None, :], mu)
         s00, s01, s11 = sig[..., 0, 0], sig[..., 0, 1], sig[..., 1, 1]
         g0 = g1 = p22 = np.zeros(1)
@@ -575,7 +577,7 @@ class FastSLAM:
         Shapes: poses (M,3), z (2,), c (M,), is_new (M,) -> (M,) (meaningless where is_new)."""
         p = self.particles
         rows = np.arange(p.size)
-        r = self.config.sensor.covariance
+        r = self._r
         mu, sig, ll = landmark_update(poses, z, p.lm_mean[rows, c], p.lm_cov[rows, c], r)
         if is_new.any():
             mu0, sig0 = landmark_init(poses[is_new], z, r)
@@ -601,7 +603,7 @@ class FastSLAM:
         use = np.flatnonzero(ids >= 0) if self.known else np.arange(len(obs))
         m = p.size
         rows = np.arange(m)
-        r = cfg.sensor.covariance
+        r = self._r
         log_p0 = math.log(cfg.new_landmark_likelihood)
         assoc_slots = np.full((len(obs), m), -1, dtype=np.int64)
 
