@@ -499,8 +499,10 @@ class FastSLAM:
     def _candidates(self, poses: Array, radius: float) -> tuple[IntArray, BoolArray]:
         """Per particle, the occupied slots within ``radius`` of its pose, left-packed. (M,3) -> (M,V), (M,V)."""
         p = self.particles
-        d = p.lm_mean - poses[:, None, :2]
-        near = (p.lm_evidence > 0) & (np.einsum("mki,mki->mk", d, d) <= radius * radius)
+        used = int(p.lm_count.max())  # per-particle ML appends slots: nothing lives beyond the longest map
+        dx = p.lm_mean[:, :used, 0] - poses[:, 0:1]
+        dy = p.lm_mean[:, :used, 1] - poses[:, 1:2]
+        near = (p.lm_evidence[:, :used] > 0) & (dx * dx + dy * dy <= radius * radius)
         rows, cols = np.nonzero(near)
         counts = np.bincount(rows, minlength=p.size)
         v = int(counts.max()) if counts.size else 0
