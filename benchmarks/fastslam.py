@@ -7,8 +7,8 @@ copies the maps (and, for per-particle ML, one cheap O(M N) distance pass per st
 Set-up: N landmarks spread uniformly over a square sized so that ~10 are within the 8 m sensor range; every particle
 starts with all N landmarks in its map (noisy copies of the truth); the robot drives a circle near the centre and
 sees the landmarks within range (~10) per step. Timings are medians over steps of this process's CPU time
-(``time.process_time``: the machine is shared, wall-clock time would measure the neighbours). Prints a table, µs per particle per
-observation (target <= 5), the cost of one resampling copy, and fitted log-log exponents.
+(``time.process_time``: the machine is shared, wall-clock time would measure the neighbours). Prints a table,
+µs per particle per observation (target <= 5), the cost of one resampling copy, and fitted log-log exponents.
 
     python benchmarks/fastslam.py            # full grid (~1-2 min on 2 cores)
     python benchmarks/fastslam.py --quick    # fewer steps

@@ -78,7 +78,6 @@ from slam2d.models.sensors import (
     range_bearing,
     range_bearing_inverse,
     range_bearing_inverse_jacobians,
-    range_bearing_jacobians,
 )
 
 Array = NDArray[np.float64]
@@ -653,9 +652,8 @@ class FastSLAM:
                 assoc_slots[j] = c
             poses = sample_gaussian_poses(poses, pose_cov, self._rng)
             # landmark EKFs at the drawn pose, in the order the observations were incorporated
-            for j, c, is_new in decisions:
-                z = z_all[j]
-                self._update_landmarks(poses, z, c, is_new & (p.lm_evidence[rows, c] == 0))
+            for jj, c, is_new in decisions:
+                self._update_landmarks(poses, z_all[jj], c, is_new & (p.lm_evidence[rows, c] == 0))
         p.poses = poses
 
         if not self.known:
