@@ -476,3 +476,19 @@ def test_room_ate_is_far_below_dead_reckoning(estimator, method):
     _, rec = slam2d.run_named(estimator, "room", seed=4, overrides={"particles": 20, "association.method": method})
     assert rec["ate_rmse_m"] < 0.25 * dr["ate_rmse_m"], (rec["ate_rmse_m"], dr["ate_rmse_m"])
     assert abs(rec["landmarks_estimated"] - 30) <= 3
+
+
+def test_cli_runs_fastslam2_and_records_its_config(tmp_path, capsys):
+    import json
+
+    from slam2d.cli.main import main
+
+    out = tmp_path / "r.json"
+    assert main(["run", "--scenario", "room", "--estimator", "fastslam2", "--set", "particles=5",
+                 "--set", "steps=20", "--set", "association.method=known", "--json", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert rec["estimator"] == "fastslam2" and rec["estimator_config"]["version"] == 2
+    assert rec["estimator_config"]["particles"] == 5 and rec["landmarks_estimated"] > 0
+    assert "fastslam2" in capsys.readouterr().out
+    assert main(["run", "--scenario", "room", "--estimator", "fastslam", "--set", "particles=0"]) == 2
+    assert "particles" in capsys.readouterr().err
