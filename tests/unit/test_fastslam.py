@@ -492,3 +492,18 @@ def test_cli_runs_fastslam2_and_records_its_config(tmp_path, capsys):
     assert "fastslam2" in capsys.readouterr().out
     assert main(["run", "--scenario", "room", "--estimator", "fastslam", "--set", "particles=0"]) == 2
     assert "particles" in capsys.readouterr().err
+
+
+def test_batched_known_update_equals_the_per_observation_loop():
+    log = slam2d.simulate("room", 5, steps=40)
+    out = []
+    for batch in (True, False):
+        est = make_estimator("fastslam", {"particles": 9, "association.method": "known"}, log.metadata)
+        assert isinstance(est, FastSLAM)
+        est._batch_known = batch
+        res = slam2d.run(est, log, rng=np.random.default_rng(8))
+        out.append((res.poses, est.particles))
+    np.testing.assert_allclose(out[0][0], out[1][0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out[0][1].lm_mean, out[1][1].lm_mean, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(out[0][1].lm_cov, out[1][1].lm_cov, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(out[0][1].lm_evidence, out[1][1].lm_evidence)
