@@ -143,13 +143,13 @@ def test_proposal_update_equals_the_information_form_of_montemerlo_2003(rng):
         hx, hm = range_bearing_jacobians(x_hat[i], mu[i])
         q = hm @ sig[i] @ hm.T + R
         nu = np.array([z[0] - zh[0], angle_diff(z[1], zh[1])])
-        # eq. (11)-(12) of the paper / Probabilistic Robotics 13.42-13.43, straight from the formula
+        # the information form of Montemerlo et al. 2003 (Probabilistic Robotics sec. 13.4), straight from the formula
         cov_ref = np.linalg.inv(hx.T @ np.linalg.inv(q) @ hx + np.linalg.inv(p0[i]))
         mean_ref = x_hat[i] + cov_ref @ hx.T @ np.linalg.inv(q) @ nu
         np.testing.assert_allclose(cov[i], cov_ref, rtol=1e-7, atol=1e-12)
         np.testing.assert_allclose(mean[i, :2], mean_ref[:2], rtol=1e-9, atol=1e-10)
         assert angle_diff(mean[i, 2], mean_ref[2]) == pytest.approx(0, abs=1e-10)
-        # importance weight: N(z; z_hat, H_x P H_x^T + H_m Sigma H_m^T + R)  (table 13.2)
+        # importance weight: N(z; z_hat, H_x P H_x^T + H_m Sigma H_m^T + R)  (Montemerlo et al. 2003)
         ll_ref = multivariate_normal(np.zeros(2), hx @ p0[i] @ hx.T + q).logpdf(nu)
         assert ll[i] == pytest.approx(ll_ref, rel=1e-9)
 

@@ -7,19 +7,19 @@ association, over each particle's candidate landmarks).
 
 Versions (``FastSLAMConfig.version``):
 
-* **1.0** (Montemerlo et al. 2002; Probabilistic Robotics table 13.1): the pose is sampled from the motion model
+* **1.0** (Montemerlo et al. 2002; Probabilistic Robotics sec. 13.3): the pose is sampled from the motion model
   (rot1-trans-rot2 noise, as the simulator draws it); the importance weight of a matched observation is
   ``N(z; h(x, mu), H_m Sigma H_m^T + R)``.
-* **2.0** (Montemerlo et al. 2003; Probabilistic Robotics table 13.2): the pose is sampled from a Gaussian
+* **2.0** (Montemerlo et al. 2003; Probabilistic Robotics sec. 13.4): the pose is sampled from a Gaussian
   proposal that also conditions on the step's observations. Starting from the linearised motion model
   ``N(x_hat, V Q V^T)``, each matched observation updates the proposal with ``Q_z = H_m Sigma H_m^T + R`` as the
-  measurement noise (a Kalman update, algebraically equal to the information form of eq. 13.42-13.43); the
+  measurement noise (a Kalman update, algebraically equal to the information form given in both references); the
   observation multiplies the weight by its predictive likelihood ``N(z; h(x_hat, mu), H_x P H_x^T + Q_z)``
-  (table 13.2, the ``L`` matrix), taken under the proposal *before* that observation, so the product over a
+  (the textbook's ``L`` matrix), taken under the proposal *before* that observation, so the product over a
   step's observations is the joint predictive likelihood. Then the pose is drawn from the final proposal and the
   landmark EKFs are updated at the drawn pose.
 
-A new landmark multiplies the weight by ``new_landmark_likelihood`` (the ``p0`` of table 13.2).
+A new landmark multiplies the weight by ``new_landmark_likelihood`` (the textbook's ``p0``).
 
 Association (``FastSLAMConfig.association.method``): ``"known"`` uses the source's ids (``Observations.landmark_id``;
 negative ids -- clutter, moving objects -- are ignored) with one slot per id shared by all particles. **Any other
@@ -28,9 +28,16 @@ highest likelihood (the same likelihood that enters the weight), or starts a new
 below ``new_landmark_likelihood``. The gate probabilities of :class:`AssociationConfig` are not used here:
 per-particle ML is the textbook rule, and the threshold is the weight given to "new landmark".
 
-Existence counters (per-particle ML only; Probabilistic Robotics table 13.3): a landmark starts with evidence 2,
-gains 1 per sighting and loses 1 per step in which it should have been seen (predicted inside 90% of the sensor's
-range and field of view) but was not; at 0 its slot is freed. With known association nothing is pruned.
+Existence counters (per-particle ML only; the map management of Probabilistic Robotics ch. 13): a landmark
+starts with evidence 2, gains 1 per sighting and loses 1 per step in which it should have been seen (predicted
+inside 90% of the sensor's range and field of view) but was not; at 0 its slot is freed. With known association
+nothing is pruned.
+
+Cost: FastSLAM 1.0 with known ids updates a scan's landmarks in one (M, k) batch; otherwise one vectorised
+iteration per observation. Per-particle ML looks once per step at every particle's whole map (a cheap O(M N)
+distance pass that keeps the landmarks within sensor range + ``candidate_margin_m``), then scores each observation
+exactly against the ``association_candidates`` nearest of them: O(M k) per step beyond that pass. Resampling
+copies all maps: O(M N).
 
 Weights are kept as logs, normalised by log-sum-exp; low-variance (systematic) resampling runs when
 ``N_eff = 1 / sum(w^2)`` falls below ``resample_threshold * particles``; it copies every per-particle array by
@@ -44,7 +51,7 @@ Landmark ids are the source's ids for known association, the particle's slot num
 ``extras``: ``particles`` (M,3) and ``weights`` (M,) after this step, ``n_eff`` (before resampling),
 ``resampled`` (bool), ``weight_resets`` (int, cumulative), ``state_dim`` (3 + 2 x landmarks of the shown particle,
 the size of one particle's state, comparable to EKF-SLAM's), ``assoc`` (per observation: the shown particle's
-landmark id, or -1 for "new"/ignored).
+landmark id (a new landmark's id included), or -1 for an ignored observation).
 
 References: M. Montemerlo, S. Thrun, D. Koller, B. Wegbreit, "FastSLAM 2.0: An improved particle filtering
 algorithm for simultaneous localization and mapping that provably converges", IJCAI 2003; S. Thrun, W. Burgard,
@@ -278,7 +285,7 @@ def _observe(poses: Array, lm: Array) -> tuple[Array, Array, Array, Array, Array
     """Predicted range, bearing and the landmark Jacobian H_m entries, element-wise (fast for small batches).
 
     Returns (range, bearing (unwrapped), h00, h01, h10, h11) with ``H_m = [[h00, h01], [h10, h11]]``; the pose
-    Jacobian is ``H_x = [-H_m | (0, -1)^T]`` (Probabilistic Robotics eq. 10.18, see ``range_bearing_jacobians``).
+    Jacobian is ``H_x = [-H_m | (0, -1)^T]`` (as ``range_bearing_jacobians``, which the FD test checks).
     Shapes: poses (...,3), lm (...,2) -> six (...) arrays.
     """
     dx, dy = lm[..., 0] - poses[..., 0], lm[..., 1] - poses[..., 1]
@@ -309,7 +316,7 @@ def _logpdf2_sym(n0: Array, n1: Array, s00: Array, s01: Array, s11: Array) -> Ar
 def landmark_init(poses: Array, z: Array, r: Array) -> tuple[Array, Array]:
     """New landmark EKF from one observation: mean ``g^-1(x, z)``, covariance ``G_z R G_z^T``.
 
-    Shapes: poses (M,3), z (2,) or (M,2), r (2,2) -> (M,2), (M,2,2). References: Probabilistic Robotics table 13.1.
+    Shapes: poses (M,3), z (2,) or (M,2), r (2,2) -> (M,2), (M,2,2). References: Probabilistic Robotics sec. 13.3.
     """
     zz = np.broadcast_to(z, (*poses.shape[:-1], 2))
     mean = range_bearing_inverse(poses, zz)
@@ -324,7 +331,7 @@ def landmark_update(poses: Array, z: Array, mean: Array, cov: Array, r: Array) -
     Returns (new mean, new cov, log N(z; h(x, mu), S)) -- the last is the FastSLAM 1.0 importance weight.
     Written element-wise over the 2x2 blocks because numpy's stacked matmul is slow for tiny matrices.
     Shapes: poses (M,3), z (2,), mean (M,2), cov (M,2,2), r (2,2) -> (M,2), (M,2,2), (M,).
-    References: Probabilistic Robotics table 13.1.
+    References: Probabilistic Robotics sec. 13.3.
     """
     rng, bearing, h00, h01, h10, h11 = _observe(poses, mean)
     s00, s01, s11 = cov[..., 0, 0], 0.5 * (cov[..., 0, 1] + cov[..., 1, 0]), cov[..., 1, 1]
@@ -353,9 +360,9 @@ def proposal_update(
     With ``Q_z = H_m Sigma H_m^T + R`` (landmark uncertainty plus sensor noise), the proposal is updated like a
     Kalman filter whose state is the pose: ``S = H_x P H_x^T + Q_z``, ``K = P H_x^T S^-1``,
     ``x' = x_hat + K nu``, ``P' = P - K S K^T``; this equals the information form
-    ``P' = (H_x^T Q_z^-1 H_x + P^-1)^-1``, ``x' = x_hat + P' H_x^T Q_z^-1 nu`` of Montemerlo et al. 2003 (eq. 11-12)
-    and Probabilistic Robotics eq. 13.42-13.43, without inverting P. The returned log-likelihood
-    ``log N(z; h(x_hat, mu), S)`` is the observation's importance-weight factor (table 13.2).
+    ``P' = (H_x^T Q_z^-1 H_x + P^-1)^-1``, ``x' = x_hat + P' H_x^T Q_z^-1 nu`` of Montemerlo et al. 2003 and
+    Probabilistic Robotics sec. 13.4, without inverting P. The returned log-likelihood
+    ``log N(z; h(x_hat, mu), S)`` is the observation's importance-weight factor.
 
     Shapes: pose_mean (M,3), pose_cov (M,3,3), z (2,), lm_mean (M,2), lm_cov (M,2,2), r (2,2)
     -> (M,3), (M,3,3), (M,).
@@ -699,7 +706,7 @@ class FastSLAM:
             self._assoc[j] = self._slot_ids[shown[j]] if self.known else shown[j]
 
     def _count_misses(self, cand: IntArray, valid: BoolArray, observed: IntArray) -> None:
-        """Existence counters (table 13.3): -1 for each landmark predicted well inside the sensor's view and not
+        """Existence counters: -1 for each landmark predicted well inside the sensor's view and not
         observed this step; a counter reaching 0 frees the slot (its stale mean stays; evidence 0 marks it empty).
 
         Shapes: cand/valid (M,V) the landmarks near each particle (a superset of those in view), observed (k,M)."""
