@@ -507,3 +507,16 @@ def test_batched_known_update_equals_the_per_observation_loop():
     np.testing.assert_allclose(out[0][1].lm_mean, out[1][1].lm_mean, rtol=0, atol=1e-12)
     np.testing.assert_allclose(out[0][1].lm_cov, out[1][1].lm_cov, rtol=0, atol=1e-15)
     np.testing.assert_array_equal(out[0][1].lm_evidence, out[1][1].lm_evidence)
+
+
+@pytest.mark.parametrize("method", ["known", "mahalanobis"])
+def test_fastslam2_standing_still_stays_finite(method):
+    # zero odometry makes the motion covariance singular (no lateral noise), and a padded candidate slot sits
+    # exactly at the robot: neither may produce NaN or a warning (warnings are errors in this suite)
+    est = FastSLAM(FastSLAM2Config(particles=20, association=AssociationConfig(method=method)))  # type: ignore[arg-type]
+    est.reset(np.zeros(3), rng=np.random.default_rng(0))
+    for t in range(1, 6):
+        est.step(_step(t, [0.0, 0.0, 0.0], [[3.0, 0.1], [4.0, -1.0]], [0, 1]))
+    snap = est.estimate()
+    assert np.all(np.isfinite(est.particles.poses)) and len(snap.landmarks) == 2
+    assert np.abs(snap.pose).max() < 0.05

@@ -289,7 +289,8 @@ def _observe(poses: Array, lm: Array) -> tuple[Array, Array, Array, Array, Array
     Shapes: poses (...,3), lm (...,2) -> six (...) arrays.
     """
     dx, dy = lm[..., 0] - poses[..., 0], lm[..., 1] - poses[..., 1]
-    q = dx * dx + dy * dy
+    # a floor keeps padded/empty candidate slots (means at the origin) and a landmark on the robot finite
+    q = np.maximum(dx * dx + dy * dy, 1e-18)
     rng = np.sqrt(q)
     bearing = np.arctan2(dy, dx) - poses[..., 2]
     return rng, bearing, dx / rng, dy / rng, -dy / q, dx / q
