@@ -10,7 +10,7 @@ STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --disable-pip-version-check -e ".[dev,viz,cluster]"
+	$(PY) -m pip install --quiet --disable-pip-version-check -e ".[dev,viz,cluster,crosscheck]"
 	rm -f $(VENV)/.installed-*
 	touch $(STAMP)
 

@@ -50,6 +50,7 @@ def _load_builtin() -> None:
 #: modules whose import registers more estimators; each back end adds its own line here
 _BUILTIN_MODULES: list[str] = [
     "slam2d.filters.ekf_slam",
+    "slam2d.filters.fastslam",
 ]
 
 
