@@ -1,4 +1,4 @@
-"""``slam2d run``: one estimator over a simulated scenario or a saved log; prints a table, optionally JSON."""
+"""``slam2d run``: one estimator over a simulated scenario, a saved log or a real dataset; prints a table and JSON."""
 
 from __future__ import annotations
 
@@ -6,12 +6,14 @@ import argparse
 from typing import Any
 
 from slam2d.cli.common import add_set_argument, overrides_from, print_table, write_json
+from slam2d.eval.gps import gps_ate
+from slam2d.io.datasets import DATASETS, load_dataset
 from slam2d.lab.registry import estimator_names
 from slam2d.lab.runner import run_named
 from slam2d.log import Log
 from slam2d.sim.scenarios import SCENARIOS
 
-COLUMNS = ["estimator", "scenario", "seed", "steps", "ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_rad",
+COLUMNS = ["estimator", "scenario", "robot", "seed", "steps", "ate_rmse_m", "gps_ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_rad",
            "final_pose_error_m", "landmarks_estimated", "step_ms_mean"]
 
 
@@ -21,6 +23,13 @@ def register(sub: Any) -> None:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--scenario", default=None, help=f"one of: {', '.join(sorted(SCENARIOS))} (default room)")
     src.add_argument("--log", default=None, help="a log saved by 'slam2d simulate'")
+    src.add_argument("--dataset", default=None, help=f"a real dataset: {', '.join(DATASETS)} (see 'slam2d datasets')")
+    p.add_argument("--robot", type=int, default=1, help="MRCLAM robot 1..5 (default 1)")
+    p.add_argument("--dataset-path", default=None, metavar="DIR",
+                   help="folder in the dataset's format (default: the staged copy under the data directory)")
+    p.add_argument("--data-dir", default=None, help="directory holding the dataset folders (overrides SLAM2D_DATA)")
+    p.add_argument("--max-steps", type=int, default=None, help="use only the first N steps of the dataset")
+    p.add_argument("--max-time", type=float, default=None, metavar="S", help="use only the first S seconds")
     p.add_argument("--estimator", default="dead-reckoning", help=f"one of: {', '.join(estimator_names())}")
     p.add_argument("--seed", type=int, default=0, help="seed for the simulation and the estimator (default 0)")
     p.add_argument("--json", default=None, metavar="OUT", help="write the flat result record as JSON")
@@ -30,8 +39,20 @@ def register(sub: Any) -> None:
 
 def cmd(args: argparse.Namespace) -> int:
     log = Log.load(args.log) if args.log else None
-    _, record = run_named(args.estimator, args.scenario or "room", seed=args.seed, overrides=overrides_from(args),
+    if args.dataset:
+        log = load_dataset(args.dataset, args.dataset_path, args.robot, data_dir_override=args.data_dir,
+                           max_steps=args.max_steps, max_time_s=args.max_time)
+    elif args.dataset_path or args.max_steps or args.max_time:
+        raise ValueError("--dataset-path, --max-steps and --max-time need --dataset NAME")
+    result, record = run_named(args.estimator, args.scenario or "room", seed=args.seed, overrides=overrides_from(args),
                           log=log, progress=None)
+    if args.dataset:
+        record["dataset"] = str(log.metadata.get("dataset", args.dataset))
+        record["dataset_path"] = str(log.metadata.get("dataset_path", ""))
+        if "robot" in log.metadata:
+            record["robot"] = int(log.metadata["robot"])
+        if log.gps_step is not None and log.true_poses is None and log.gps_step.size >= 2:
+            record["gps_ate_rmse_m"] = gps_ate(result.trajectory, log).rmse_m
     print_table([record], [c for c in COLUMNS if c in record])
     if args.json:
         write_json(args.json, record)

@@ -8,6 +8,7 @@ truth, and estimate :class:`MotionNoise` / sensor noise from data against ground
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,7 @@ from scipy.optimize import nnls
 
 from slam2d.geometry import se2
 from slam2d.geometry.angles import angle_diff, wrap_angle
+from slam2d.log import Log
 from slam2d.models.motion import odometry_to_rtr
 
 Array = NDArray[np.float64]
@@ -209,19 +211,25 @@ def nearest_step(stamps: ArrayLike, t: ArrayLike) -> IntArray:
     return np.where(left_closer, j - 1, j).astype(np.int64)
 
 
-def cap_steps(stamps: Array, max_steps: int | None, max_time_s: float | None) -> Array:
-    """``stamps`` cut to at most ``max_steps`` steps and ``max_time_s`` seconds after the first stamp."""
+def cap_log(log: Log, max_steps: int | None, max_time_s: float | None) -> Log:
+    """``log`` cut to at most ``max_steps`` steps and ``max_time_s`` seconds after pose 0 (noise fits stay those of
+    the whole run, so a cut log assumes the same noise as the full one). ``metadata['cut']`` records the cut."""
+    steps = log.num_steps
     if max_time_s is not None:
         if not max_time_s > 0:
             raise ValueError(f"max_time_s must be > 0 (got {max_time_s})")
-        stamps = stamps[stamps <= stamps[0] + max_time_s]
+        steps = min(steps, int(np.searchsorted(log.stamps_s, log.stamps_s[0] + max_time_s, side="right")) - 1)
     if max_steps is not None:
         if max_steps < 1:
             raise ValueError(f"max_steps must be >= 1 (got {max_steps})")
-        stamps = stamps[: max_steps + 1]
-    if stamps.size < 2:
-        raise ValueError("the requested cap leaves no step")
-    return stamps
+        steps = min(steps, int(max_steps))
+    if steps < 1:
+        raise ValueError("the requested cut leaves no step")
+    if steps == log.num_steps:
+        return log
+    meta = {**log.metadata, "cut": {"steps": steps, "of": log.num_steps, "max_steps": max_steps,
+                                    "max_time_s": max_time_s}}
+    return dataclasses.replace(log.head(steps), metadata=meta)
 
 
 # ---------------------------------------------------------------------------------------------------- noise fits
@@ -286,9 +294,11 @@ def _compose_chain(u: Array) -> Array:
 def robust_std(residuals: ArrayLike) -> dict[str, float]:
     """Spread of residuals about ZERO for a zero-mean noise model: ``sqrt(median^2 + (1.4826 MAD)^2)``.
 
-    The bias is folded in because the filters assume zero-mean noise. Returns median, MAD-based std and the total.
+    The bias is folded in because the filters assume zero-mean noise. Returns median, MAD-based std and the total
+    (at least ``MIN_FLOOR``).
     """
     r = np.asarray(residuals, dtype=np.float64)
     med = float(np.median(r))
     mad_std = float(1.4826 * np.median(np.abs(r - med)))
-    return {"median": med, "mad_std": mad_std, "std": float(np.hypot(med, mad_std))}
+    # floored like the motion noise: a zero std would make the sensor config invalid (and the filter singular)
+    return {"median": med, "mad_std": mad_std, "std": max(MIN_FLOOR, float(np.hypot(med, mad_std)))}

@@ -27,7 +27,7 @@ import numpy as np
 from slam2d.geometry.angles import angle_diff
 from slam2d.io.datasets._common import (
     DatasetFormatError,
-    cap_steps,
+    cap_log,
     check_integer,
     check_nondecreasing,
     fit_motion_noise,
@@ -50,9 +50,9 @@ def load_mrclam(path: str | Path, robot: int = 1, *, dt_s: float = 0.1, max_step
                 noise_window_s: float = 1.0) -> Log:
     """Load robot ``robot`` of the MRCLAM dataset folder ``path`` as a :class:`Log` (see the module docstring).
 
-    ``max_steps`` / ``max_time_s`` cut the run (for fast tests). ``ground_truth=False`` skips reading the motion
+    ``max_steps`` / ``max_time_s`` cut the run (for fast tests; noise is still fitted on the whole run). ``ground_truth=False`` skips reading the motion
     capture file (then metadata holds default noise values instead of fitted ones). Noise parameters in
-    ``metadata['motion']`` / ``metadata['sensor']`` are fitted against ground truth of the (possibly cut) run:
+    ``metadata['motion']`` / ``metadata['sensor']`` are fitted against ground truth of the whole run:
     motion by :func:`fit_motion_noise` over windows of ``noise_window_s``, sensor as the zero-mean spread of the
     landmark measurement residuals (predicted from interpolated ground truth and surveyed landmarks).
     Shapes: the Log's (T+1,) stamps and (T,3) odometry, observations sorted by step.
@@ -106,8 +106,6 @@ def load_mrclam(path: str | Path, robot: int = 1, *, dt_s: float = 0.1, max_step
             raise DatasetFormatError(f"{gt.where(0)}: ground truth starts at {gt.data[0, 0]!r}, after the first "
                                      f"odometry time {t0!r} ({odo.where(0)})")
         t1 = min(t1, float(gt.data[-1, 0]))
-    if max_time_s is not None:
-        t1 = min(t1, t0 + max_time_s)
 
     # barcode -> subject -> landmark id (or robot / unknown)
     bar_to_subj = dict(zip(barcodes.tolist(), subjects.tolist(), strict=True))
@@ -122,8 +120,6 @@ def load_mrclam(path: str | Path, robot: int = 1, *, dt_s: float = 0.1, max_step
     keep = in_run & ((ids >= 0) | (others == "keep"))
 
     stamps = step_grid(t0, t1, dt_s, t_meas[keep], dt_s / 4)
-    stamps = cap_steps(stamps, max_steps, None)
-    keep &= t_meas <= stamps[-1]
     obs_step = np.searchsorted(stamps, t_meas[keep]).astype(np.int64)  # exact hits by construction
 
     dr = integrate_velocity(t_odo, odo.data[:, 1], odo.data[:, 2], stamps)
@@ -169,7 +165,7 @@ def load_mrclam(path: str | Path, robot: int = 1, *, dt_s: float = 0.1, max_step
         "noise_estimate": estimate,
         "units": {"length": "m", "angle": "rad", "time": "s (relative to t0_unix_s)"},
     }
-    return Log(
+    log = Log(
         stamps_s=stamps - t0,
         odometry=odometry,
         obs_step=obs_step,
@@ -182,3 +178,4 @@ def load_mrclam(path: str | Path, robot: int = 1, *, dt_s: float = 0.1, max_step
         true_landmark_ids=np.arange(lm_subj.size, dtype=np.int64),
         metadata=metadata,
     )
+    return cap_log(log, max_steps, max_time_s)

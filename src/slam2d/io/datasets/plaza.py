@@ -32,7 +32,7 @@ import numpy as np
 from slam2d.geometry.angles import angle_diff, wrap_angle
 from slam2d.io.datasets._common import (
     DatasetFormatError,
-    cap_steps,
+    cap_log,
     check_integer,
     check_nondecreasing,
     fit_motion_noise,
@@ -45,6 +45,11 @@ from slam2d.io.datasets._common import (
 from slam2d.log import Log
 
 NAMES = ("Plaza1", "Plaza2")
+
+#: rotation part of the Plaza2 motion-noise fit (``load_plaza(path, "Plaza2").metadata['motion']``: alpha_rot_rot 0,
+#: alpha_rot_trans 6.57e-6, min_rot_std_rad 0.00169 per 0.1 s step), rescaled to Plaza1's 0.2 s steps so the
+#: variance per metre and per second is unchanged (alpha / 2, floor * sqrt(2)); used for Plaza1 only
+PLAZA2_ROTATION_NOISE: dict[str, float] = {"alpha_rot_rot": 0.0, "alpha_rot_trans": 3.3e-6, "min_rot_std_rad": 0.0024}
 
 
 def load_plaza(path: str | Path, name: str = "Plaza1", *, max_steps: int | None = None,
@@ -96,9 +101,9 @@ def load_plaza(path: str | Path, name: str = "Plaza1", *, max_steps: int | None 
         t_first = float(gt.data[0, 0])
     else:
         t_first = float(t_dr[0] - period)
-    stamps = cap_steps(np.concatenate([[t_first], t_dr]), max_steps, max_time_s)
+    stamps = np.concatenate([[t_first], t_dr])
     t = stamps.size - 1
-    d, dh = dr.data[:t, 1], dr.data[:t, 2]
+    d, dh = dr.data[:, 1], dr.data[:, 2]
     odometry = np.column_stack([d * np.cos(dh / 2), d * np.sin(dh / 2), wrap_angle(dh)])
 
     t_td = td.data[:, 0]
@@ -159,7 +164,7 @@ def load_plaza(path: str | Path, name: str = "Plaza1", *, max_steps: int | None 
         "noise_estimate": estimate,
         "units": {"length": "m", "angle": "rad", "time": "s (vehicle clock)"},
     }
-    return Log(
+    log = Log(
         stamps_s=stamps,
         odometry=odometry,
         obs_step=obs_step.astype(np.int64),
@@ -172,9 +177,4 @@ def load_plaza(path: str | Path, name: str = "Plaza1", *, max_steps: int | None 
         true_landmark_ids=np.arange(nodes.size, dtype=np.int64),
         metadata=metadata,
     )
-
-
-#: rotation part of the Plaza2 motion-noise fit (``load_plaza(path, "Plaza2").metadata['motion']``: alpha_rot_rot 0,
-#: alpha_rot_trans 6.57e-6, min_rot_std_rad 0.00169 per 0.1 s step), rescaled to Plaza1's 0.2 s steps so the
-#: variance per metre and per second is unchanged (alpha / 2, floor * sqrt(2)); used for Plaza1 only
-PLAZA2_ROTATION_NOISE: dict[str, float] = {"alpha_rot_rot": 0.0, "alpha_rot_trans": 3.3e-6, "min_rot_std_rad": 0.0024}
+    return cap_log(log, max_steps, max_time_s)

@@ -27,9 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
+from slam2d.geometry import se2
 from slam2d.io.datasets._common import (
     DatasetFormatError,
-    cap_steps,
+    cap_log,
     check_integer,
     check_nondecreasing,
     increments,
@@ -38,7 +39,6 @@ from slam2d.io.datasets._common import (
     read_table,
     require_file,
 )
-from slam2d.geometry import se2
 from slam2d.log import CLUTTER_ID, Log
 
 #: vehicle geometry from the dataset's info.txt / car.bmp (metres)
@@ -114,9 +114,7 @@ def load_victoria(path: str | Path, *, max_steps: int | None = None, max_time_s:
     t_scan = scans.data[:, 1]
     first = int(np.searchsorted(t_scan, t0, side="right"))  # first scan strictly after pose 0
     stamps = np.concatenate([[t0], t_scan[first:]])
-    stamps = cap_steps(stamps, max_steps, max_time_s)
-    last_scan = first + stamps.size - 2  # scans first..last_scan are steps 1..T
-    keep = (d_scan >= first) & (d_scan <= last_scan)
+    keep = d_scan >= first  # scans first.. are steps 1..T
     obs_step = (d_scan[keep] - first + 1).astype(np.int64)
 
     speed, steer = odo.data[:, 1], odo.data[:, 2]
@@ -157,7 +155,7 @@ def load_victoria(path: str | Path, *, max_steps: int | None = None, max_time_s:
         "noise_estimate": {"method": "hand-set (no full ground truth)"},
         "units": {"length": "m", "angle": "rad", "time": "s (dataset clock)"},
     }
-    return Log(
+    log = Log(
         stamps_s=stamps,
         odometry=odometry,
         obs_step=obs_step,
@@ -169,3 +167,4 @@ def load_victoria(path: str | Path, *, max_steps: int | None = None, max_time_s:
         gps_xy=gps_xy,
         metadata=metadata,
     )
+    return cap_log(log, max_steps, max_time_s)
