@@ -13,8 +13,8 @@ from slam2d.lab.runner import run_named
 from slam2d.log import Log
 from slam2d.sim.scenarios import SCENARIOS
 
-COLUMNS = ["estimator", "scenario", "robot", "seed", "steps", "ate_rmse_m", "gps_ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_rad",
-           "final_pose_error_m", "landmarks_estimated", "step_ms_mean"]
+COLUMNS = ["estimator", "scenario", "robot", "seed", "steps", "ate_rmse_m", "gps_ate_rmse_m", "rpe_trans_rmse_m",
+           "rpe_rot_rmse_rad", "final_pose_error_m", "landmarks_estimated", "step_ms_mean"]
 
 
 def register(sub: Any) -> None:
@@ -44,9 +44,9 @@ def cmd(args: argparse.Namespace) -> int:
                            max_steps=args.max_steps, max_time_s=args.max_time)
     elif args.dataset_path or args.max_steps or args.max_time:
         raise ValueError("--dataset-path, --max-steps and --max-time need --dataset NAME")
-    result, record = run_named(args.estimator, args.scenario or "room", seed=args.seed, overrides=overrides_from(args),
-                          log=log, progress=None)
-    if args.dataset:
+    result, record = run_named(args.estimator, args.scenario or "room", seed=args.seed,
+                               overrides=overrides_from(args), log=log, progress=None)
+    if args.dataset and log is not None:
         record["dataset"] = str(log.metadata.get("dataset", args.dataset))
         record["dataset_path"] = str(log.metadata.get("dataset_path", ""))
         if "robot" in log.metadata:

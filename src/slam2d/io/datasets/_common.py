@@ -243,8 +243,8 @@ def fit_motion_noise(odometry: ArrayLike, true_poses: ArrayLike, steps_per_windo
     glitches), ``E[e_t^2] = a3 T^2 + a4 (R1^2 + R2^2) + c_t`` and ``E[e_r^2] = a1 (R1^2 + R2^2) + 2 a2 T^2 + c_r``
     with (R1, T, R2) the window's odometry rot1-trans-rot2. If the per-step errors were independent, a window of n
     equal steps has n times the per-step variance of steps n times shorter, so per-step alphas are ``n * a`` and the
-    per-step floors ``sqrt(c / n)`` (at least ``MIN_FLOOR``) (``c_r`` counts two rotations). Correlated (systematic) odometry errors make
-    this an under-estimate for horizons much longer than the window.
+    per-step floors ``sqrt(c / n)`` (at least ``MIN_FLOOR``; ``c_r`` counts two rotations). Correlated
+    (systematic) odometry errors make this an under-estimate for horizons much longer than the window.
 
     Shapes: odometry (T,3), true_poses (T+1,3). Returns a dict of MotionNoise fields (floats).
     """

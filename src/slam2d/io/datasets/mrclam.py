@@ -50,11 +50,12 @@ def load_mrclam(path: str | Path, robot: int = 1, *, dt_s: float = 0.1, max_step
                 noise_window_s: float = 1.0) -> Log:
     """Load robot ``robot`` of the MRCLAM dataset folder ``path`` as a :class:`Log` (see the module docstring).
 
-    ``max_steps`` / ``max_time_s`` cut the run (for fast tests; noise is still fitted on the whole run). ``ground_truth=False`` skips reading the motion
-    capture file (then metadata holds default noise values instead of fitted ones). Noise parameters in
-    ``metadata['motion']`` / ``metadata['sensor']`` are fitted against ground truth of the whole run:
-    motion by :func:`fit_motion_noise` over windows of ``noise_window_s``, sensor as the zero-mean spread of the
-    landmark measurement residuals (predicted from interpolated ground truth and surveyed landmarks).
+    ``max_steps`` / ``max_time_s`` cut the run (for fast tests; noise is still fitted on the whole run).
+    ``ground_truth=False`` skips reading the motion capture file (then nothing is fitted and estimators keep their
+    default noise). Noise parameters in ``metadata['motion']`` / ``metadata['sensor']`` are fitted against ground
+    truth of the whole run: motion by :func:`fit_motion_noise` over windows of ``noise_window_s``, sensor as the
+    zero-mean spread of the landmark measurement residuals (predicted from interpolated ground truth and surveyed
+    landmarks).
     Shapes: the Log's (T+1,) stamps and (T,3) odometry, observations sorted by step.
     """
     folder = Path(path)
