@@ -233,18 +233,20 @@ def cap_log(log: Log, max_steps: int | None, max_time_s: float | None) -> Log:
 
 
 # ---------------------------------------------------------------------------------------------------- noise fits
-def fit_motion_noise(odometry: ArrayLike, true_poses: ArrayLike, steps_per_window: int) -> dict[str, Any]:
+def fit_motion_noise(odometry: ArrayLike, true_poses: ArrayLike, steps_per_window: int, *,
+                     min_trans_m: float = 0.005) -> dict[str, Any]:
     """Estimate :class:`~slam2d.models.motion.MotionNoise` parameters from odometry against ground truth.
 
-    Method (documented in the dataset README section): cut the run into non-overlapping windows of
-    ``steps_per_window`` steps; per window compare the composed odometry with the true relative motion: translation
-    error ``e_t = |t_odo| - |t_true|`` and rotation error ``e_r = angle_diff(dth_odo, dth_true)``. Fit, by
-    non-negative least squares on the squared errors (windows above the 99th percentile dropped as motion-capture
-    glitches), ``E[e_t^2] = a3 T^2 + a4 (R1^2 + R2^2) + c_t`` and ``E[e_r^2] = a1 (R1^2 + R2^2) + 2 a2 T^2 + c_r``
-    with (R1, T, R2) the window's odometry rot1-trans-rot2. If the per-step errors were independent, a window of n
-    equal steps has n times the per-step variance of steps n times shorter, so per-step alphas are ``n * a`` and the
-    per-step floors ``sqrt(c / n)`` (at least ``MIN_FLOOR``; ``c_r`` counts two rotations). Correlated
-    (systematic) odometry errors make this an under-estimate for horizons much longer than the window.
+    Method: cut the run into non-overlapping windows of ``steps_per_window`` steps; per window compare the composed
+    odometry with the true relative motion: translation error ``e_t = |t_odo| - |t_true|`` and rotation error
+    ``e_r = angle_diff(dth_odo, dth_true)``. Fit, by non-negative least squares on the squared errors (refitted
+    without windows beyond 5 sigma of a first fit, as motion-capture glitches),
+    ``E[e_t^2] = a3 T^2 + a4 (R1^2 + R2^2) + c_t`` and ``E[e_r^2] = a1 (R1^2 + R2^2) + 2 a2 T^2 + c_r``
+    with (R1, T, R2) the window's TRUE rot1-trans-rot2 (rot1 = 0 when T < ``min_trans_m``). If the per-step errors
+    were independent, a window of n equal steps has n times the per-step variance of steps n times shorter, so
+    per-step alphas are ``n * a`` and the per-step floors ``sqrt(c / n)`` (at least ``MIN_FLOOR``; ``c_r`` counts
+    two rotations). Correlated (systematic) odometry errors make this an under-estimate for horizons much longer
+    than the window.
 
     Shapes: odometry (T,3), true_poses (T+1,3). Returns a dict of MotionNoise fields (floats).
     """
@@ -258,15 +260,26 @@ def fit_motion_noise(odometry: ArrayLike, true_poses: ArrayLike, steps_per_windo
     ends = np.arange(0, u.shape[0] + 1, n)
     w_odo = se2.between(dr[ends[:-1]], dr[ends[1:]])
     w_gt = se2.between(gt[ends[:-1]], gt[ends[1:]])
-    m = odometry_to_rtr(w_odo)
-    e_t = m[:, 1] - np.hypot(w_gt[:, 0], w_gt[:, 1])
+    # features from the TRUE motion (the noise model is driven by it; features from the noisy odometry bias the
+    # fit low: errors in variables). Windows that barely translate count as pure rotations (rot1 = 0), because the
+    # direction of a motion-capture displacement of a few millimetres is noise.
+    m = odometry_to_rtr(w_gt)
+    still = m[:, 1] < min_trans_m
+    m[still, 0] = 0.0
+    m[still, 2] = w_gt[still, 2]
+    e_t = odometry_to_rtr(w_odo)[:, 1] - m[:, 1]
     e_r = angle_diff(w_odo[:, 2], w_gt[:, 2])
     rr = m[:, 0] ** 2 + m[:, 2] ** 2
     tt = m[:, 1] ** 2
 
     def fit(features: Array, err2: Array) -> Array:
-        keep = err2 <= np.percentile(err2, 99)
-        coef, _ = nnls(features[keep], err2[keep])
+        coef, _ = nnls(features, err2)
+        # second pass without windows beyond 5 sigma of the first fit (motion-capture glitches); a Gaussian loses
+        # ~1e-6 of its windows this way, so the variances stay unbiased (a percentile cut would bias them low)
+        pred = np.maximum(features @ coef, 1e-300)
+        keep = err2 <= 25.0 * pred
+        if keep.sum() >= features.shape[1] and not keep.all():
+            coef, _ = nnls(features[keep], err2[keep])
         return coef
 
     ct = fit(np.column_stack([tt, rr, np.ones_like(tt)]), e_t**2)

@@ -131,7 +131,7 @@ def load_victoria(path: str | Path, *, max_steps: int | None = None, max_time_s:
         half = 0.5 * float(np.median(np.diff(stamps)))
         s = nearest_step(stamps, t_gps)
         err = np.abs(stamps[s] - t_gps)
-        ok = (err <= half) & (s >= 1)
+        ok = err <= half
         # one fix per step: the closest one
         order = np.lexsort((err[ok], s[ok]))
         s_ok, xy_ok = s[ok][order], gps.data[ok][order, 1:3]
