@@ -189,7 +189,8 @@ def step_grid(t0: float, t1: float, dt: float, events: ArrayLike, min_gap_s: flo
     """Step times: a regular grid ``t0, t0+dt, ...`` up to ``t1`` merged with the event times in (t0, t1].
 
     Grid points closer than ``min_gap_s`` to an event are dropped (the event time replaces them), so every event
-    falls exactly on a step and steps stay at most about ``dt`` apart. Returns sorted unique times starting at t0.
+    falls exactly on a step and consecutive steps are at most ``dt + 2 min_gap_s`` apart. Returns sorted unique
+    times starting at t0.
     """
     grid = t0 + dt * np.arange(1, int(np.floor((t1 - t0) / dt)) + 1)
     ev = np.unique(np.asarray(events, dtype=np.float64))
