@@ -388,3 +388,13 @@ def test_registry_and_cli_on_synthetic_folders(tmp_path: Path, capsys, monkeypat
     assert "single vehicle" in capsys.readouterr().err
     assert main(["run", "--dataset", "nope"]) == 2
     assert "valid datasets" in capsys.readouterr().err
+
+
+def test_loaders_import_no_plotting_or_web_framework():
+    import subprocess
+    import sys
+
+    code = ("import sys, slam2d.io.datasets, slam2d.eval.gps\n"
+            "print(','.join(m for m in ('matplotlib', 'fastapi', 'starlette') if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == ""

@@ -135,3 +135,21 @@ def test_cli_runs_each_dataset_briefly(capsys):
     out = capsys.readouterr().out
     assert "gps_ate_rmse_m" in out and "plaza2" in out
     assert load_dataset("plaza1", max_steps=5).num_steps == 5
+
+
+def test_dataset_logs_round_trip_through_save_and_load(tmp_path):
+    import json
+
+    from slam2d.log import _ARRAY_FIELDS, Log
+
+    logs = [load_mrclam(dataset_path("utias-mrclam-7"), 2, max_steps=400),
+            load_victoria(dataset_path("victoria-park"), max_steps=400),
+            load_plaza(dataset_path("plaza-range-only"), "Plaza1", max_steps=400)]
+    for i, log in enumerate(logs):
+        back = Log.load(log.save(tmp_path / f"{i}.npz"))
+        for name in (*_ARRAY_FIELDS, "initial_pose"):
+            a, b = getattr(log, name), getattr(back, name)
+            assert (a is None) == (b is None), name
+            if a is not None:
+                assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True), name  # Plaza bearings are NaN
+        assert json.dumps(dict(back.metadata), sort_keys=True) == json.dumps(dict(log.metadata), sort_keys=True)
