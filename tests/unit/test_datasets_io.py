@@ -398,3 +398,19 @@ def test_loaders_import_no_plotting_or_web_framework():
             "print(','.join(m for m in ('matplotlib', 'fastapi', 'starlette') if m in sys.modules))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == ""
+
+
+def test_mrclam_run_starts_where_ground_truth_starts(tmp_path: Path):
+    write_mrclam(tmp_path / "M")
+    gt_file = tmp_path / "M" / "Robot1_Groundtruth.dat"
+    lines = gt_file.read_text().splitlines()
+    kept = [ln for ln in lines if ln.startswith("#") or float(ln.split()[0]) >= 1002.0]
+    gt_file.write_text("\n".join(kept) + "\n")
+    log = load_mrclam(tmp_path / "M", 1)
+    first_gt = float(kept[4].split()[0])
+    assert log.metadata["t0_unix_s"] == first_gt
+    dr = chain(log.odometry, log.initial_pose)
+    assert np.max(np.hypot(*(dr[:, :2] - log.true_poses[:, :2]).T)) < 2e-3
+    gt_file.write_text("# a\n# b\n# c\n# d\n2000 0 0 0\n2001 0 0 0\n")
+    with pytest.raises(DatasetFormatError, match="does not overlap the odometry"):
+        load_mrclam(tmp_path / "M", 1)

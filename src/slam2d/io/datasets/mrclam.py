@@ -4,12 +4,14 @@ Files (whitespace separated, ``#`` comment lines): ``Barcodes.dat`` (subject, ba
 (subject, x, y, x_std, y_std), ``RobotK_Odometry.dat`` (time, v, omega), ``RobotK_Measurement.dat`` (time, BARCODE,
 range, bearing), ``RobotK_Groundtruth.dat`` (time, x, y, theta).
 
-Step convention: pose 0 is at the first odometry time ``t0``; steps are a regular grid of ``dt_s`` (default 0.1 s)
-merged with every distinct measurement time (grid points closer than ``dt_s / 4`` to a measurement time are dropped),
-so each measurement sits exactly on its step. Odometry per step is the exact integral of the (v, omega) commands
-held piecewise constant (zero-order hold from each record to the next) between the two step times, as
+Step convention: pose 0 is at the first odometry time ``t0`` (or the first ground-truth time if that is later);
+steps are a regular grid of ``dt_s`` (default 0.1 s) merged with every distinct measurement time (grid points
+closer than ``dt_s / 4`` to a measurement time are dropped, so steps are at most 1.5 ``dt_s`` apart), so each
+measurement sits exactly on its step. Odometry per step is the exact integral of the (v, omega) commands held
+piecewise constant (zero-order hold from each record to the next) between the two step times, as
 ``[dx, dy, dtheta]`` in the frame of the earlier pose. The run ends at the last odometry or ground-truth time,
 whichever is first. Ground truth is the motion-capture pose linearly interpolated (unwrapped heading) at each step.
+Measurements at or before ``t0`` are dropped (pose 0 is never updated by an estimator).
 
 Ids: landmark subjects (from Landmark_Groundtruth, 6..20 in the published sets) map to landmark ids 0..N-1 in
 increasing subject order; ``metadata['landmark_subjects'][i]`` is the subject of id i. Observations of other robots
@@ -103,10 +105,12 @@ def load_mrclam(path: str | Path, robot: int = 1, *, dt_s: float = 0.1, max_step
     t0 = float(t_odo[0])
     t1 = float(t_odo[-1])
     if gt is not None:
-        if gt.data[0, 0] > t0:
-            raise DatasetFormatError(f"{gt.where(0)}: ground truth starts at {gt.data[0, 0]!r}, after the first "
-                                     f"odometry time {t0!r} ({odo.where(0)})")
+        # the run is where both odometry and ground truth exist (in the published sets GT starts ~6-9 s earlier)
+        t0 = max(t0, float(gt.data[0, 0]))
         t1 = min(t1, float(gt.data[-1, 0]))
+        if t1 <= t0:
+            raise DatasetFormatError(f"{gt.path}: ground truth ({gt.data[0, 0]!r}..{gt.data[-1, 0]!r}) does not "
+                                     f"overlap the odometry ({t_odo[0]!r}..{t_odo[-1]!r}) of {odo.path}")
 
     # barcode -> subject -> landmark id (or robot / unknown)
     bar_to_subj = dict(zip(barcodes.tolist(), subjects.tolist(), strict=True))
