@@ -1,1 +1,1 @@
-"""Input/output: dataset loaders producing :class:`slam2d.log.Log` (``io.datasets``) and graph file formats."""
+"""Reading and writing files: trajectory export (TUM), graph formats, dataset loaders."""
