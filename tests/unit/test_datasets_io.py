@@ -414,3 +414,28 @@ def test_mrclam_run_starts_where_ground_truth_starts(tmp_path: Path):
     gt_file.write_text("# a\n# b\n# c\n# d\n2000 0 0 0\n2001 0 0 0\n")
     with pytest.raises(DatasetFormatError, match="does not overlap the odometry"):
         load_mrclam(tmp_path / "M", 1)
+
+
+def test_cli_turns_gps_off_for_evaluation_only_gps(tmp_path: Path, monkeypatch):
+    from dataclasses import dataclass
+
+    from slam2d.filters.dead_reckoning import DeadReckoning, DeadReckoningConfig
+    from slam2d.lab import registry
+
+    seen: list[bool] = []
+
+    @dataclass(frozen=True, kw_only=True)
+    class ProbeConfig:
+        use_gps: bool = True
+
+    def factory(cfg: ProbeConfig) -> DeadReckoning:
+        seen.append(cfg.use_gps)
+        return DeadReckoning(DeadReckoningConfig())
+
+    monkeypatch.setitem(registry.ESTIMATORS, "gps-probe",
+                        registry.EstimatorSpec("gps-probe", ProbeConfig, factory, "test probe"))
+    write_victoria(tmp_path / "victoria-park" / "raw")
+    base = ["run", "--dataset", "victoria-park", "--data-dir", str(tmp_path), "--estimator", "gps-probe"]
+    assert main(base) == 0
+    assert main([*base, "--set", "use_gps=true"]) == 0
+    assert seen == [False, True]

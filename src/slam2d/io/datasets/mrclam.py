@@ -152,6 +152,17 @@ def load_mrclam(path: str | Path, robot: int = 1, *, dt_s: float = 0.1, max_step
     if keep.any():
         sensor["max_range_m"] = float(np.ceil(meas.data[keep, 2].max() * 10) / 10)
         sensor["fov_rad"] = float(min(2 * np.pi, np.ceil(2 * np.abs(meas.data[keep, 3]).max() * 100) / 100))
+        if true_poses is not None and lm_xy.shape[0]:
+            # per-STEP detection probability of a landmark inside that range and field of view (truth geometry):
+            # the camera reports a visible landmark in only ~10 % of the 0.1 s steps, which matters to filters that
+            # count misses (negative information)
+            z = range_bearing(true_poses[1:, None, :], lm_xy[None, :, :])
+            in_view = (z[..., 0] <= sensor["max_range_m"]) & (np.abs(z[..., 1]) <= 0.5 * sensor["fov_rad"])
+            seen = np.zeros_like(in_view)
+            lm_obs = ids[keep] >= 0
+            seen[obs_step[lm_obs] - 1, ids[keep][lm_obs]] = True
+            if in_view.any():
+                sensor["detection_prob"] = float(max(np.sum(seen & in_view) / np.sum(in_view), 1e-3))
 
     metadata = {
         "source": "dataset",

@@ -156,6 +156,8 @@ def load_plaza(path: str | Path, name: str = "Plaza1", *, max_steps: int | None 
         estimate["range_residual"] = r_res
         estimate["range_bias_m"] = r_res["median"]
 
+    # per-step probability that a given node's range is reported (all nodes are always "in view": omnidirectional)
+    sensor["detection_prob"] = float(min(1.0, max(sel.size / (t * nodes.size), 1e-3)))
     metadata = {
         "source": "dataset",
         "dataset": name.lower(),

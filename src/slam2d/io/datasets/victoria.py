@@ -18,6 +18,8 @@ method cannot run on this dataset.
 
 GPS fixes (own frame, metres) are attached to the nearest step when within half a scan period (one per step, the
 closest) in ``gps_step`` / ``gps_xy`` for evaluation (:func:`slam2d.eval.gps.gps_ate`); there is no ``true_poses``.
+``metadata['gps_role'] == 'evaluation'`` says estimators should not fuse them (``slam2d run`` turns an estimator's
+``use_gps`` off for such logs unless ``--set use_gps=true`` is given).
 Noise parameters in the metadata are hand-set, not fitted (there is no full ground truth).
 """
 
@@ -145,6 +147,7 @@ def load_victoria(path: str | Path, *, max_steps: int | None = None, max_time_s:
         "dataset_path": str(folder.resolve()),
         "measurement": "range-bearing",
         "association": "unknown (all obs_id = -1)",
+        "gps_role": "evaluation",
         "step_convention": "pose 0 at the first odometry time; one step per later laser scan; pose = laser pose",
         "t0_s": t0,
         "vehicle": {"a_m": CAR_A_M, "b_m": CAR_B_M, "H_m": CAR_H_M, "L_m": CAR_L_M},
