@@ -439,3 +439,18 @@ def test_cli_turns_gps_off_for_evaluation_only_gps(tmp_path: Path, monkeypatch):
     assert main(base) == 0
     assert main([*base, "--set", "use_gps=true"]) == 0
     assert seen == [False, True]
+
+
+def test_dataset_options_pass_through_and_are_validated(tmp_path: Path, capsys):
+    write_victoria(tmp_path / "victoria-park" / "raw")
+    near = load_dataset("victoria-park", data_dir_override=tmp_path, max_range_m=10.5)
+    assert np.all(near.obs_range_m <= 10.5) and near.metadata["sensor"]["max_range_m"] == 10.5
+    assert len(near.obs_range_m) < len(load_dataset("victoria-park", data_dir_override=tmp_path).obs_range_m)
+    with pytest.raises(ValueError, match=r"unknown option\(s\) \['dt_s'\].*valid options"):
+        load_dataset("victoria-park", data_dir_override=tmp_path, dt_s=0.2)
+    write_mrclam(tmp_path / "utias-mrclam-7")
+    args = ["run", "--dataset", "mrclam", "--data-dir", str(tmp_path), "--dataset-opt", "dt_s=0.2",
+            "--dataset-opt", "others=keep", "--json", str(tmp_path / "r.json")]
+    assert main(args) == 0
+    assert main(["run", "--dataset-opt", "dt_s=0.2"]) == 2
+    assert "need --dataset NAME" in capsys.readouterr().err

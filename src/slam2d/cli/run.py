@@ -7,6 +7,7 @@ import dataclasses
 from typing import Any
 
 from slam2d.cli.common import add_set_argument, overrides_from, print_table, write_json
+from slam2d.config import parse_set_args
 from slam2d.eval.gps import gps_ate
 from slam2d.io.datasets import DATASETS, load_dataset
 from slam2d.lab.registry import estimator_names, get_spec
@@ -31,6 +32,9 @@ def register(sub: Any) -> None:
     p.add_argument("--data-dir", default=None, help="directory holding the dataset folders (overrides SLAM2D_DATA)")
     p.add_argument("--max-steps", type=int, default=None, help="use only the first N steps of the dataset")
     p.add_argument("--max-time", type=float, default=None, metavar="S", help="use only the first S seconds")
+    p.add_argument("--dataset-opt", action="append", default=[], metavar="KEY=VALUE",
+                   help="a loader option (repeatable), e.g. dt_s=0.2 or others=keep (mrclam), max_range_m=30 "
+                        "(victoria-park)")
     p.add_argument("--estimator", default="dead-reckoning", help=f"one of: {', '.join(estimator_names())}")
     p.add_argument("--seed", type=int, default=0, help="seed for the simulation and the estimator (default 0)")
     p.add_argument("--json", default=None, metavar="OUT", help="write the flat result record as JSON")
@@ -38,13 +42,29 @@ def register(sub: Any) -> None:
     p.set_defaults(func=cmd)
 
 
+def _literal(text: str) -> Any:
+    """A --dataset-opt value: int, float, true/false, none, else the string itself."""
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    if low == "none":
+        return None
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return text
+
+
 def cmd(args: argparse.Namespace) -> int:
     log = Log.load(args.log) if args.log else None
     if args.dataset:
+        opts = {k: _literal(v) for k, v in parse_set_args(args.dataset_opt).items()}
         log = load_dataset(args.dataset, args.dataset_path, args.robot, data_dir_override=args.data_dir,
-                           max_steps=args.max_steps, max_time_s=args.max_time)
-    elif args.dataset_path or args.max_steps or args.max_time:
-        raise ValueError("--dataset-path, --max-steps and --max-time need --dataset NAME")
+                           max_steps=args.max_steps, max_time_s=args.max_time, **opts)
+    elif args.dataset_path or args.max_steps or args.max_time or args.dataset_opt:
+        raise ValueError("--dataset-path, --dataset-opt, --max-steps and --max-time need --dataset NAME")
     overrides = overrides_from(args)
     if log is not None and log.metadata.get("gps_role") == "evaluation":
         # GPS kept for scoring only: an estimator that can fuse GPS must not see it unless asked explicitly

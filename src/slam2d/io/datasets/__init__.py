@@ -13,6 +13,7 @@ ground truth where there is one; how is recorded in ``metadata['noise_estimate']
 
 from __future__ import annotations
 
+import inspect
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -26,7 +27,7 @@ from slam2d.io.datasets.victoria import load_victoria
 from slam2d.log import Log
 
 __all__ = ["DATASETS", "DatasetFormatError", "DatasetInfo", "data_dir", "dataset_status", "load_dataset",
-           "load_mrclam", "load_plaza", "load_victoria"]
+           "load_mrclam", "load_plaza", "load_victoria", "loader_options"]
 
 
 @dataclass(frozen=True)
@@ -112,15 +113,28 @@ def dataset_status(name: str, root: str | Path | None = None) -> tuple[Path, lis
     return folder, [f for f in info.files if not (folder / f).is_file()]
 
 
+def loader_options(name: str) -> list[str]:
+    """Keyword options the loader of dataset ``name`` accepts (``max_steps``, ``max_time_s``, ...)."""
+    loaders: dict[str, Callable[..., Log]] = {"mrclam": load_mrclam, "victoria-park": load_victoria,
+                                              "plaza1": load_plaza, "plaza2": load_plaza}
+    fn = loaders[resolve_name(name).name]
+    return [p.name for p in inspect.signature(fn).parameters.values() if p.kind is inspect.Parameter.KEYWORD_ONLY]
+
+
 def load_dataset(name: str, path: str | Path | None = None, robot: int = 1, *, data_dir_override: str | Path | None
                  = None, **opts: Any) -> Log:
     """Load dataset ``name`` as a :class:`Log`.
 
     ``path`` points the loader at any folder in that dataset's format (e.g. another ``MRCLAM_DatasetN``); by default
     the staged copy under :func:`data_dir` is used. ``robot`` selects the MRCLAM robot (1..5; other datasets have one
-    vehicle and reject robot != 1). ``opts`` go to the loader, e.g. ``max_steps``, ``max_time_s``.
+    vehicle and reject robot != 1). ``opts`` go to the loader (see :func:`loader_options`), e.g. ``max_steps``,
+    ``max_time_s``; an unknown option raises ValueError listing the valid ones.
     """
     info = resolve_name(name)
+    valid = loader_options(info.name)
+    bad = sorted(set(opts) - set(valid))
+    if bad:
+        raise ValueError(f"unknown option(s) {bad} for dataset {info.name!r}; valid options: {valid}")
     if not info.has_robots and robot != 1:
         raise ValueError(f"dataset {info.name!r} has a single vehicle; --robot/robot applies to mrclam only")
     folder = Path(path) if path is not None else data_dir(data_dir_override)[0] / info.folder

@@ -63,10 +63,11 @@ def raw_folder(path: str | Path) -> Path:
 
 
 def load_victoria(path: str | Path, *, max_steps: int | None = None, max_time_s: float | None = None,
-                  descriptors: bool = True) -> Log:
+                  descriptors: bool = True, max_range_m: float | None = None) -> Log:
     """Load the raw Victoria Park run in ``path`` (the staged folder or its ``raw/``) as a :class:`Log`.
 
-    See the module docstring for the conventions. ``max_steps`` / ``max_time_s`` cut the run.
+    See the module docstring for the conventions. ``max_steps`` / ``max_time_s`` cut the run. ``max_range_m`` drops
+    detections farther than that (and becomes the sensor's ``max_range_m`` in the metadata); default: keep all.
     Shapes: stamps (T+1,), odometry (T,3), obs (K,) with obs_descriptor (K,1) tree diameter (m) when ``descriptors``.
     """
     folder = raw_folder(path)
@@ -117,6 +118,10 @@ def load_victoria(path: str | Path, *, max_steps: int | None = None, max_time_s:
     first = int(np.searchsorted(t_scan, t0, side="right"))  # first scan strictly after pose 0
     stamps = np.concatenate([[t0], t_scan[first:]])
     keep = d_scan >= first  # scans first.. are steps 1..T
+    if max_range_m is not None:
+        if not max_range_m > 0:
+            raise ValueError(f"max_range_m must be > 0 (got {max_range_m})")
+        keep &= det.data[:, 2] <= max_range_m
     obs_step = (d_scan[keep] - first + 1).astype(np.int64)
 
     speed, steer = odo.data[:, 1], odo.data[:, 2]
@@ -141,6 +146,9 @@ def load_victoria(path: str | Path, *, max_steps: int | None = None, max_time_s:
         gps_step, gps_xy = s_ok[first_of].astype(np.int64), xy_ok[first_of].copy()
         gps_counts = {"gps_rows": int(gps.data.shape[0]), "gps_attached": int(gps_step.size)}
 
+    sensor = dict(SENSOR) if descriptors else {k: v for k, v in SENSOR.items() if "descriptor" not in k}
+    if max_range_m is not None:
+        sensor["max_range_m"] = float(max_range_m)
     metadata = {
         "source": "dataset",
         "dataset": "victoria-park",
@@ -154,7 +162,7 @@ def load_victoria(path: str | Path, *, max_steps: int | None = None, max_time_s:
         "counts": {"detections": int(d_scan.size), "detections_kept": int(keep.sum()),
                    "scans": int(scan_idx.size), "scans_before_start": first, **gps_counts},
         "motion": dict(MOTION),
-        "sensor": dict(SENSOR) if descriptors else {k: v for k, v in SENSOR.items() if "descriptor" not in k},
+        "sensor": sensor,
         "noise_estimate": {"method": "hand-set (no full ground truth)"},
         "units": {"length": "m", "angle": "rad", "time": "s (dataset clock)"},
     }
