@@ -20,7 +20,13 @@ GPS fixes (own frame, metres) are attached to the nearest step when within half 
 closest) in ``gps_step`` / ``gps_xy`` for evaluation (:func:`slam2d.eval.gps.gps_ate`); there is no ``true_poses``.
 ``metadata['gps_role'] == 'evaluation'`` says estimators should not fuse them (``slam2d run`` turns an estimator's
 ``use_gps`` off for such logs unless ``--set use_gps=true`` is given).
-Noise parameters in the metadata are hand-set, not fitted (there is no full ground truth).
+Noise parameters in the metadata are hand-set, not fitted (there is no full ground truth). For scale: trees
+re-observed one scan later, predicted through the loaded odometry, differ by a robust (MAD) std of 0.061 m in range
+and 0.0042 rad in bearing (so at most ~0.043 m / 0.003 rad per detection); 5 scans (~1 s) later 0.136 m / 0.010 rad,
+25 scans later 0.35 m / 0.033 rad (odometry drift). Shifting the scan times against the odometry by -0.3..+0.3 s
+makes those residuals smallest near 0 to -0.05 s, so no clock offset is applied. The hand-set sensor noise
+(0.5 m, 0.02 rad) is deliberately several times the re-observation spread: tree centres move with the viewpoint
+and the detector reports clutter.
 """
 
 from __future__ import annotations
