@@ -17,6 +17,7 @@ COMMANDS = [
     "slam2d.cli.experiment",
     "slam2d.cli.sweep",
     "slam2d.cli.report",
+    "slam2d.cli.datasets",
 ]
 
 
