@@ -1,0 +1,294 @@
+"""Problem analysis (done once per structure) and linearisation (done every iteration).
+
+:class:`Analysis` resolves factor keys to variable indices, finds connected components and fixes the gauge, lays
+out the state vector, builds the CSC pattern of the UPPER triangle of ``H = J^T Omega J`` and precomputes, for every
+factor type, the position in H's data array of each entry of that factor's local ``D x D`` block (entries below the
+diagonal or touching a held variable go to a dump slot). An iteration then only evaluates residuals/Jacobians in
+one vectorised call per factor type and scatters the block products with ``np.bincount``.
+
+Gauge rule: a connected component of the factor graph is *anchored* if it contains a pose prior factor or a pose
+the caller holds fixed; otherwise its lowest-key pose is held fixed (the convention of the reference numbers:
+"first pose held fixed, no prior"). Variables that appear in no factor are held fixed and reported.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import ArrayLike, NDArray
+from scipy.sparse.csgraph import connected_components
+
+from slam2d.graph.factors import KINDS
+from slam2d.graph.graph import FactorBlock, FactorGraph, GraphError, Values
+from slam2d.graph.robust import robustify
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+def _lookup(keys: IntArray, wanted: IntArray, what: str, kind: str) -> IntArray:
+    """Indices of ``wanted`` in ``keys``; GraphError naming the first missing key."""
+    if wanted.size == 0:
+        return np.zeros(0, np.int64)
+    if keys.size == 0:
+        raise GraphError(f"{kind} factor 0 refers to {what} {int(wanted[0])}, which has no value")
+    order = np.argsort(keys, kind="stable")
+    sk = keys[order]
+    pos = np.searchsorted(sk, wanted)
+    pos_c = np.minimum(pos, sk.size - 1)
+    bad = sk[pos_c] != wanted
+    if np.any(bad):
+        f = int(np.flatnonzero(bad)[0])
+        raise GraphError(f"{kind} factor {f} refers to {what} {int(wanted[f])}, which has no value")
+    return order[pos_c].astype(np.int64)
+
+
+@dataclass
+class _TypePlan:
+    block: FactorBlock
+    var_idx: list[IntArray]  # per argument: index into poses or points arrays
+    cols: IntArray  # (N, D) global columns, -1 for held variables
+    h_pos: IntArray  # (N*D*D,) positions in H data (nnz = dump)
+    g_pos: IntArray  # (N*D,) positions in the gradient (n = dump)
+
+
+class Analysis:
+    """Symbolic analysis of a (graph, values) pair; valid while the structure and the variable sets are unchanged.
+
+    Shapes: ``indptr`` (n+1,), ``indices`` (nnz,) describe the upper triangle of H in CSC; ``diag_pos`` (n,).
+    """
+
+    def __init__(self, graph: FactorGraph, values: Values, *, fixed_pose_keys: ArrayLike = (),
+                 gauge: str = "first_pose") -> None:
+        if gauge not in ("first_pose", "none"):
+            raise ValueError(f"gauge must be 'first_pose' or 'none' (got {gauge!r})")
+        self.structure_version = graph.structure_version
+        self.pose_keys = values.pose_keys.copy()
+        self.point_keys = values.point_keys.copy()
+        P, L = self.pose_keys.size, self.point_keys.size
+        blocks = graph.blocks()
+        var_idx: list[list[IntArray]] = []
+        for b in blocks:
+            idx = []
+            for a, vk in enumerate(KINDS[b.kind].var_kinds):
+                keys = self.pose_keys if vk == "pose" else self.point_keys
+                idx.append(_lookup(keys, b.keys[a], vk, b.kind))
+            var_idx.append(idx)
+
+        # --- connectivity over variables: node = pose index, or P + point index
+        def node(vk: str, ix: IntArray) -> IntArray:
+            return ix if vk == "pose" else ix + P
+
+        rows, cols, used = [], [], np.zeros(P + L, bool)
+        anchored_nodes = []
+        fixed_idx = _lookup(self.pose_keys, np.asarray(fixed_pose_keys, np.int64).reshape(-1), "pose", "FIX")
+        for b, idx in zip(blocks, var_idx, strict=True):
+            vks = KINDS[b.kind].var_kinds
+            nodes = [node(vk, ix) for vk, ix in zip(vks, idx, strict=True)]
+            for nd in nodes:
+                used[nd] = True
+            if len(nodes) == 2:
+                rows.append(nodes[0])
+                cols.append(nodes[1])
+            if b.kind == "prior":
+                anchored_nodes.append(nodes[0])
+        if rows:
+            r, c = np.concatenate(rows), np.concatenate(cols)
+        else:
+            r = c = np.zeros(0, np.int64)
+        adj = sp.coo_matrix((np.ones(r.size), (r, c)), shape=(P + L, P + L))
+        ncomp, labels = connected_components(adj, directed=False)
+        held = np.zeros(P + L, bool)
+        held[fixed_idx] = True
+        held[~used] = True
+        self.unconstrained_pose_keys = self.pose_keys[~used[:P]]
+        self.unconstrained_point_keys = self.point_keys[~used[P:]]
+        anchored = np.zeros(ncomp, bool)
+        if anchored_nodes:
+            anchored[labels[np.concatenate(anchored_nodes)]] = True
+        anchored[labels[fixed_idx]] = True
+        anchored[labels[~used]] = True  # isolated variables are held themselves
+        comp_ids = np.unique(labels[used]) if used.any() else np.zeros(0, np.int64)
+        self.num_components = int(comp_ids.size)
+        gauge_held = []
+        if gauge == "first_pose":
+            for comp in comp_ids[~anchored[comp_ids]]:
+                members = np.flatnonzero((labels[:P] == comp))
+                if members.size == 0:
+                    continue  # points only: constrained by point priors / positions, or singular (reported later)
+                first = members[np.argmin(self.pose_keys[members])]
+                held[first] = True
+                gauge_held.append(int(self.pose_keys[first]))
+        self.gauge_pose_keys = np.array(sorted(gauge_held), np.int64)
+        self.held_pose = held[:P]
+        self.held_point = held[P:]
+
+        # --- state layout: free poses (3 each) then free points (2 each)
+        self.free_pose = np.flatnonzero(~self.held_pose)
+        self.free_point = np.flatnonzero(~self.held_point)
+        pose_off = np.full(P, -1, np.int64)
+        pose_off[self.free_pose] = 3 * np.arange(self.free_pose.size)
+        point_off = np.full(L, -1, np.int64)
+        point_off[self.free_point] = 3 * self.free_pose.size + 2 * np.arange(self.free_point.size)
+        n = 3 * self.free_pose.size + 2 * self.free_point.size
+        self.n = n
+
+        all_keys, plans_cols = [], []
+        for b, idx in zip(blocks, var_idx, strict=True):
+            parts = []
+            for vk, ix in zip(KINDS[b.kind].var_kinds, idx, strict=True):
+                off = pose_off[ix] if vk == "pose" else point_off[ix]
+                d = 3 if vk == "pose" else 2
+                c = off[:, None] + np.arange(d)[None, :]
+                c[off < 0] = -1
+                parts.append(c)
+            cc = np.concatenate(parts, axis=1)
+            R, C = cc[:, :, None], cc[:, None, :]
+            ok = (R >= 0) & (C >= 0) & (R <= C)
+            key = np.where(ok, C * n + R, -1).reshape(-1)
+            all_keys.append(key)
+            plans_cols.append(cc)
+        cat = np.concatenate(all_keys) if all_keys else np.zeros(0, np.int64)
+        valid = cat >= 0
+        uniq, inv = np.unique(cat[valid], return_inverse=True)
+        # every free variable must have its diagonal block (it appears in some factor, else it would be held)
+        diag_keys = np.arange(n, dtype=np.int64) * (n + 1)
+        self.nnz = int(uniq.size)
+        pos_all = np.full(cat.size, self.nnz, np.int64)
+        pos_all[valid] = inv
+        self.indices = (uniq % max(n, 1)).astype(np.int32)
+        colnum = uniq // max(n, 1)
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(colnum, minlength=n))]).astype(np.int32)
+        dp = np.searchsorted(uniq, diag_keys)
+        if n and (np.any(dp >= uniq.size) or np.any(uniq[np.minimum(dp, uniq.size - 1)] != diag_keys)):
+            raise GraphError("internal: a free variable has no diagonal block")  # pragma: no cover
+        self.diag_pos = dp
+        self.plans: list[_TypePlan] = []
+        start = 0
+        for b, idx, cc in zip(blocks, var_idx, plans_cols, strict=True):
+            size = cc.shape[0] * cc.shape[1] * cc.shape[1]
+            gp = cc.reshape(-1).copy()
+            gp[gp < 0] = n
+            self.plans.append(_TypePlan(b, idx, cc, pos_all[start : start + size], gp))
+            start += size
+
+    def compatible(self, graph: FactorGraph, values: Values) -> bool:
+        """True when this analysis can be reused for (graph, values)."""
+        return (graph.structure_version == self.structure_version
+                and np.array_equal(values.pose_keys, self.pose_keys)
+                and np.array_equal(values.point_keys, self.point_keys))
+
+    # ------------------------------------------------------------------------------------------ evaluation
+    def _gather(self, plan: _TypePlan, poses: Array, points: Array) -> list[Array]:
+        out = []
+        for vk, ix in zip(KINDS[plan.block.kind].var_kinds, plan.var_idx, strict=True):
+            out.append(poses[ix] if vk == "pose" else points[ix])
+        return out
+
+    def errors(self, poses: Array, points: Array) -> list[tuple[str, Array, Array, Array]]:
+        """Per type: (kind, whitened squared error s (N,), robust cost rho (N,), IRLS weight w (N,))."""
+        out = []
+        for plan in self.plans:
+            b = plan.block
+            e, _ = _evaluate_residual(b.kind, self._gather(plan, poses, points), b.z)
+            r = np.einsum("nij,nj->ni", b.sqrt_info, e)
+            s = np.einsum("ni,ni->n", r, r)
+            rho, w = robustify(s, b.kernel, b.kernel_param)
+            out.append((b.kind, s, rho, w))
+        return out
+
+    def linearize(self, poses: Array, points: Array) -> tuple[float, float, Array, Array]:
+        """Robust cost, raw chi2, upper-H data (nnz,) and gradient g = J^T Omega e (n,) at the given values."""
+        data = np.zeros(self.nnz + 1)
+        grad = np.zeros(self.n + 1)
+        cost = chi2 = 0.0
+        for plan in self.plans:
+            b = plan.block
+            e, J = KINDS[b.kind].evaluate(*self._gather(plan, poses, points), b.z)
+            r = np.einsum("nij,nj->ni", b.sqrt_info, e)
+            A = b.sqrt_info @ J
+            s = np.einsum("ni,ni->n", r, r)
+            rho, w = robustify(s, b.kernel, b.kernel_param)
+            cost += float(rho.sum())
+            chi2 += float(s.sum())
+            if np.any(w != 1.0):
+                sw = np.sqrt(w)
+                A = A * sw[:, None, None]
+                r = r * sw[:, None]
+            Hf = np.swapaxes(A, 1, 2) @ A
+            gf = np.einsum("nmd,nm->nd", A, r)
+            data += np.bincount(plan.h_pos, weights=Hf.reshape(-1), minlength=self.nnz + 1)
+            grad += np.bincount(plan.g_pos, weights=gf.reshape(-1), minlength=self.n + 1)
+        return cost, chi2, data[: self.nnz], grad[: self.n]
+
+    def cost(self, poses: Array, points: Array) -> tuple[float, float]:
+        """(robust cost, raw chi2) at the given values."""
+        cost = chi2 = 0.0
+        for _, s, rho, _ in self.errors(poses, points):
+            cost += float(rho.sum())
+            chi2 += float(s.sum())
+        return cost, chi2
+
+    def upper(self, data: Array) -> sp.csc_matrix:
+        """Upper triangle of H as CSC with this analysis' pattern."""
+        return sp.csc_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+
+    def retract(self, poses: Array, points: Array, dx: Array) -> tuple[Array, Array]:
+        """Apply a step to the free variables (additive with heading wrap); returns new arrays."""
+        p, q = poses.copy(), points.copy()
+        k = 3 * self.free_pose.size
+        p[self.free_pose] += dx[:k].reshape(-1, 3)
+        p[self.free_pose, 2] = np.mod(p[self.free_pose, 2] + np.pi, 2 * np.pi) - np.pi
+        p[:, 2] = np.where(p[:, 2] >= np.pi, p[:, 2] - 2 * np.pi, p[:, 2])
+        q[self.free_point] += dx[k:].reshape(-1, 2)
+        return p, q
+
+    def variable_slices(self, pose_keys: ArrayLike = (), point_keys: ArrayLike = ()) -> tuple[IntArray, list]:
+        """State-vector columns of the selected variables (-1 for held ones) and a label per variable."""
+        pk = np.asarray(pose_keys, np.int64).reshape(-1)
+        lk = np.asarray(point_keys, np.int64).reshape(-1)
+        pi = _lookup(self.pose_keys, pk, "pose", "marginal")
+        li = _lookup(self.point_keys, lk, "point", "marginal")
+        cols, labels = [], []
+        k3 = 3 * self.free_pose.size
+        rank_pose = np.full(self.pose_keys.size, -1)
+        rank_pose[self.free_pose] = np.arange(self.free_pose.size)
+        rank_point = np.full(self.point_keys.size, -1)
+        rank_point[self.free_point] = np.arange(self.free_point.size)
+        for key, i in zip(pk, pi, strict=True):
+            rk = rank_pose[i]
+            cols.append(np.arange(3) + 3 * rk if rk >= 0 else np.full(3, -1))
+            labels.append(("pose", int(key)))
+        for key, i in zip(lk, li, strict=True):
+            rk = rank_point[i]
+            cols.append(np.arange(2) + k3 + 2 * rk if rk >= 0 else np.full(2, -1))
+            labels.append(("point", int(key)))
+        return (np.concatenate(cols).astype(np.int64) if cols else np.zeros(0, np.int64)), labels
+
+
+def _evaluate_residual(kind: str, args: list[Array], z: Array) -> tuple[Array, Array | None]:
+    return KINDS[kind].evaluate(*args, z)
+
+
+def chi2(graph: FactorGraph, values: Values) -> float:
+    """g2o chi2 = sum over factors of e^T Omega e (no 1/2, no robust kernel)."""
+    return chi2_by_kind(graph, values)["total"]
+
+
+def chi2_by_kind(graph: FactorGraph, values: Values, analysis: Analysis | None = None) -> dict[str, float]:
+    """chi2 per factor type plus ``total``."""
+    an = analysis if analysis is not None else Analysis(graph, values, gauge="none")
+    out = {k: float(s.sum()) for k, s, _, _ in an.errors(values.poses, values.points)}
+    out["total"] = float(sum(out.values()))
+    return out
+
+
+def factor_chi2(graph: FactorGraph, values: Values, kind: str) -> Array:
+    """Per-factor e^T Omega e of one type, in the order the factors were added. Shapes: -> (N,)."""
+    an = Analysis(graph, values, gauge="none")
+    for k, s, _, _ in an.errors(values.poses, values.points):
+        if k == kind:
+            return s
+    return np.zeros(0)
