@@ -13,3 +13,6 @@ from slam2d.graph.optimizer import optimize as optimize
 from slam2d.graph.problem import Analysis as Analysis
 from slam2d.graph.problem import chi2 as chi2
 from slam2d.graph.problem import chi2_by_kind as chi2_by_kind
+from slam2d.graph.marginals import Marginals as Marginals
+from slam2d.graph.marginals import density_arrays as density_arrays
+from slam2d.graph.marginals import marginal_covariances as marginal_covariances
