@@ -7,7 +7,10 @@ point. Parameters follow g2o's ``RobustKernel*`` conventions:
 * ``huber`` (delta, in units of sqrt(chi2)): ``rho = s`` for ``s <= delta^2``, else ``2 delta sqrt(s) - delta^2``.
 * ``cauchy`` (delta): ``rho = delta^2 log(1 + s / delta^2)``, ``w = 1 / (1 + s / delta^2)``.
 * ``dcs`` (Phi, in chi2 units; dynamic covariance scaling, Agarwal et al. ICRA 2013 - the closed form of switchable
-  constraints): ``k = min(1, 2 Phi / (Phi + s))``, ``rho = k^2 s``, ``w = k^2``.
+  constraints): IRLS weight ``w = k^2`` with ``k = min(1, 2 Phi / (Phi + s))`` exactly as g2o's RobustKernelDCS.
+  g2o reports ``k^2 s`` as the cost, which DEcreases for ``s > Phi`` (an optimiser comparing costs is then
+  rewarded for pushing residuals up); slam2d uses the integral of the weight instead, ``rho = s`` for
+  ``s <= Phi`` and ``3 Phi - 4 Phi^2 / (Phi + s)`` above (continuous, increasing, bounded by ``3 Phi``).
 """
 
 from __future__ import annotations
@@ -51,7 +54,7 @@ def robustify(s: Array, code: NDArray[np.int8], param: Array) -> tuple[Array, Ar
             w[m] = 1.0 / (1.0 + sm / p2)
         elif c == 3:  # dcs
             k = np.minimum(1.0, 2 * p / (p + sm))
-            rho[m] = k * k * sm
+            rho[m] = np.where(sm <= p, sm, 3 * p - 4 * p * p / (p + sm))
             w[m] = k * k
         else:  # pragma: no cover - codes are validated on entry
             raise ValueError(f"unknown robust kernel code {c}")
