@@ -1,9 +1,10 @@
 """Factor types of the 2D graph back end: residuals with analytic Jacobians, one vectorised call per type.
 
-Every factor type evaluates a whole batch at once: ``evaluate(vars, z) -> (e, J)`` where ``vars`` is a tuple of
-stacked variable values (poses ``(N, 3)``, points ``(N, 2)``), ``z`` the stacked measurements, ``e`` the ``(N, m)``
-error and ``J`` the ``(N, m, D)`` Jacobian with respect to the concatenated variables (``D`` = sum of their
-dimensions), taken with the library's additive-with-wrap retraction (``geometry/se2.py``). Angular error rows go
+Every factor type evaluates a whole batch at once: ``evaluate(vars, z) -> (e, J)`` where ``vars`` are the stacked
+variable values BATCH-LAST (poses ``(3, N)``, points ``(2, N)``), ``z`` the measurements ``(meas_dim, N)``, ``e`` the
+``(m, N)`` error and ``J`` the ``(m, D, N)`` Jacobian with respect to the concatenated variables (``D`` = sum of their
+dimensions), taken with the library's additive-with-wrap retraction (``geometry/se2.py``). (The public single-factor
+functions below use the library's usual batch-first shapes.) Angular error rows go
 through the wrap, so the error is always the shortest angle.
 
 Error conventions (all are "prediction minus measurement" in the measurement space):
@@ -42,110 +43,116 @@ def _f(a: ArrayLike) -> Array:
 
 
 # ---------------------------------------------------------------------------------------------------- evaluators
-# Each evaluator takes stacked 2-D arrays and returns (e (N, m), J (N, m, D)).
+# Evaluators work BATCH-LAST: variables (d, N), measurements (meas_dim, N); they return e (m, N) and J (m, D, N).
+# With the batch axis last every component is a contiguous length-N vector, so the element-wise formulas (and the
+# block products in problem.py) run at memory speed instead of looping over tiny 3x3 matrices.
 
 
 def eval_between(xi: Array, xj: Array, z: Array) -> tuple[Array, Array]:
-    """g2o EdgeSE2 error and Jacobian w.r.t. [xi, xj]. Shapes: (N,3),(N,3),(N,3) -> (N,3),(N,3,6)."""
-    n = xi.shape[0]
-    c, s = np.cos(xi[:, 2]), np.sin(xi[:, 2])
-    cz, sz = np.cos(z[:, 2]), np.sin(z[:, 2])
-    dx, dy = xj[:, 0] - xi[:, 0], xj[:, 1] - xi[:, 1]
+    """g2o EdgeSE2 error and Jacobian w.r.t. [xi, xj]. Shapes: (3,N),(3,N),(3,N) -> (3,N),(3,6,N)."""
+    n = xi.shape[1]
+    c, s = np.cos(xi[2]), np.sin(xi[2])
+    cz, sz = np.cos(z[2]), np.sin(z[2])
+    dx, dy = xj[0] - xi[0], xj[1] - xi[1]
     u0 = c * dx + s * dy
     u1 = -s * dx + c * dy
-    a0, a1 = u0 - z[:, 0], u1 - z[:, 1]
-    e = np.empty((n, 3))
-    e[:, 0] = cz * a0 + sz * a1
-    e[:, 1] = -sz * a0 + cz * a1
-    e[:, 2] = wrap_angle(xj[:, 2] - xi[:, 2] - z[:, 2])
+    a0, a1 = u0 - z[0], u1 - z[1]
+    e = np.empty((3, n))
+    e[0] = cz * a0 + sz * a1
+    e[1] = -sz * a0 + cz * a1
+    e[2] = wrap_angle(xj[2] - xi[2] - z[2])
     # R(dth)^T R(th_i)^T = R(th_i + dth)^T
     cc = c * cz - s * sz
     ss = s * cz + c * sz
-    J = np.zeros((n, 3, 6))
-    J[:, 0, 0], J[:, 0, 1] = -cc, -ss
-    J[:, 1, 0], J[:, 1, 1] = ss, -cc
+    J = np.zeros((3, 6, n))
+    J[0, 0], J[0, 1] = -cc, -ss
+    J[1, 0], J[1, 1] = ss, -cc
     # d/dth_i of R_i^T d is [u1, -u0]; rotate by R(dth)^T
-    J[:, 0, 2] = cz * u1 - sz * u0
-    J[:, 1, 2] = -sz * u1 - cz * u0
-    J[:, 2, 2] = -1.0
-    J[:, 0, 3], J[:, 0, 4] = cc, ss
-    J[:, 1, 3], J[:, 1, 4] = -ss, cc
-    J[:, 2, 5] = 1.0
+    J[0, 2] = cz * u1 - sz * u0
+    J[1, 2] = -sz * u1 - cz * u0
+    J[2, 2] = -1.0
+    J[0, 3], J[0, 4] = cc, ss
+    J[1, 3], J[1, 4] = -ss, cc
+    J[2, 5] = 1.0
     return e, J
 
 
 def eval_prior(x: Array, z: Array) -> tuple[Array, Array]:
-    """Pose prior. Shapes: (N,3),(N,3) -> (N,3),(N,3,3)."""
+    """Pose prior. Shapes: (3,N),(3,N) -> (3,N),(3,3,N)."""
     e = x - z
-    e[:, 2] = wrap_angle(e[:, 2])
-    return e, np.broadcast_to(np.eye(3), (x.shape[0], 3, 3)).copy()
+    e[2] = wrap_angle(e[2])
+    J = np.zeros((3, 3, x.shape[1]))
+    J[0, 0] = J[1, 1] = J[2, 2] = 1.0
+    return e, J
 
 
 def eval_point(x: Array, lm: Array, z: Array) -> tuple[Array, Array]:
-    """Landmark position in the pose frame. Shapes: (N,3),(N,2),(N,2) -> (N,2),(N,2,5)."""
-    n = x.shape[0]
-    c, s = np.cos(x[:, 2]), np.sin(x[:, 2])
-    dx, dy = lm[:, 0] - x[:, 0], lm[:, 1] - x[:, 1]
+    """Landmark position in the pose frame. Shapes: (3,N),(2,N),(2,N) -> (2,N),(2,5,N)."""
+    n = x.shape[1]
+    c, s = np.cos(x[2]), np.sin(x[2])
+    dx, dy = lm[0] - x[0], lm[1] - x[1]
     u0 = c * dx + s * dy
     u1 = -s * dx + c * dy
-    e = np.stack([u0 - z[:, 0], u1 - z[:, 1]], axis=1)
-    J = np.empty((n, 2, 5))
-    J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = -c, -s, u1
-    J[:, 1, 0], J[:, 1, 1], J[:, 1, 2] = s, -c, -u0
-    J[:, 0, 3], J[:, 0, 4] = c, s
-    J[:, 1, 3], J[:, 1, 4] = -s, c
+    e = np.stack([u0 - z[0], u1 - z[1]])
+    J = np.empty((2, 5, n))
+    J[0, 0], J[0, 1], J[0, 2] = -c, -s, u1
+    J[1, 0], J[1, 1], J[1, 2] = s, -c, -u0
+    J[0, 3], J[0, 4] = c, s
+    J[1, 3], J[1, 4] = -s, c
     return e, J
 
 
 def _rb_parts(x: Array, lm: Array) -> tuple[Array, Array, Array, Array, Array]:
-    dx, dy = lm[:, 0] - x[:, 0], lm[:, 1] - x[:, 1]
+    dx, dy = lm[0] - x[0], lm[1] - x[1]
     q = dx * dx + dy * dy
     r = np.sqrt(q)
-    return dx, dy, q, r, np.arctan2(dy, dx) - x[:, 2]
+    return dx, dy, q, r, np.arctan2(dy, dx) - x[2]
 
 
 def eval_range_bearing(x: Array, lm: Array, z: Array) -> tuple[Array, Array]:
-    """Range and bearing to a landmark. Shapes: (N,3),(N,2),(N,2) -> (N,2),(N,2,5)."""
+    """Range and bearing to a landmark. Shapes: (3,N),(2,N),(2,N) -> (2,N),(2,5,N)."""
     dx, dy, q, r, b = _rb_parts(x, lm)
-    e = np.stack([r - z[:, 0], wrap_angle(b - z[:, 1])], axis=1)
-    J = np.zeros((x.shape[0], 2, 5))
-    J[:, 0, 0], J[:, 0, 1] = -dx / r, -dy / r
-    J[:, 1, 0], J[:, 1, 1], J[:, 1, 2] = dy / q, -dx / q, -1.0
-    J[:, :, 3:] = -J[:, :, :2]
+    e = np.stack([r - z[0], wrap_angle(b - z[1])])
+    J = np.zeros((2, 5, x.shape[1]))
+    J[0, 0], J[0, 1] = -dx / r, -dy / r
+    J[1, 0], J[1, 1], J[1, 2] = dy / q, -dx / q, -1.0
+    J[:, 3:] = -J[:, :2]
     return e, J
 
 
 def eval_bearing(x: Array, lm: Array, z: Array) -> tuple[Array, Array]:
-    """Bearing only. Shapes: (N,3),(N,2),(N,1) -> (N,1),(N,1,5)."""
+    """Bearing only. Shapes: (3,N),(2,N),(1,N) -> (1,N),(1,5,N)."""
     dx, dy, q, _, b = _rb_parts(x, lm)
-    e = wrap_angle(b - z[:, 0])[:, None]
-    J = np.zeros((x.shape[0], 1, 5))
-    J[:, 0, 0], J[:, 0, 1], J[:, 0, 2] = dy / q, -dx / q, -1.0
-    J[:, 0, 3], J[:, 0, 4] = -dy / q, dx / q
+    e = wrap_angle(b - z[0])[None]
+    J = np.zeros((1, 5, x.shape[1]))
+    J[0, 0], J[0, 1], J[0, 2] = dy / q, -dx / q, -1.0
+    J[0, 3], J[0, 4] = -dy / q, dx / q
     return e, J
 
 
 def eval_range(x: Array, lm: Array, z: Array) -> tuple[Array, Array]:
-    """Range only. Shapes: (N,3),(N,2),(N,1) -> (N,1),(N,1,5)."""
+    """Range only. Shapes: (3,N),(2,N),(1,N) -> (1,N),(1,5,N)."""
     dx, dy, _, r, _ = _rb_parts(x, lm)
-    e = (r - z[:, 0])[:, None]
-    J = np.zeros((x.shape[0], 1, 5))
-    J[:, 0, 0], J[:, 0, 1] = -dx / r, -dy / r
-    J[:, 0, 3], J[:, 0, 4] = dx / r, dy / r
+    e = (r - z[0])[None]
+    J = np.zeros((1, 5, x.shape[1]))
+    J[0, 0], J[0, 1] = -dx / r, -dy / r
+    J[0, 3], J[0, 4] = dx / r, dy / r
     return e, J
 
 
 def eval_position(x: Array, z: Array) -> tuple[Array, Array]:
-    """Absolute position of a pose. Shapes: (N,3),(N,2) -> (N,2),(N,2,3)."""
-    e = x[:, :2] - z
-    J = np.zeros((x.shape[0], 2, 3))
-    J[:, 0, 0] = J[:, 1, 1] = 1.0
+    """Absolute position of a pose. Shapes: (3,N),(2,N) -> (2,N),(2,3,N)."""
+    e = x[:2] - z
+    J = np.zeros((2, 3, x.shape[1]))
+    J[0, 0] = J[1, 1] = 1.0
     return e, J
 
 
 def eval_point_prior(lm: Array, z: Array) -> tuple[Array, Array]:
-    """Landmark position prior. Shapes: (N,2),(N,2) -> (N,2),(N,2,2)."""
-    return lm - z, np.broadcast_to(np.eye(2), (lm.shape[0], 2, 2)).copy()
+    """Landmark position prior. Shapes: (2,N),(2,N) -> (2,N),(2,2,N)."""
+    J = np.zeros((2, 2, lm.shape[1]))
+    J[0, 0] = J[1, 1] = 1.0
+    return lm - z, J
 
 
 # ------------------------------------------------------------------------------------------------- factor kinds
@@ -190,9 +197,11 @@ KINDS: dict[str, FactorKind] = {
 
 
 def _one(kind: str, args: tuple[ArrayLike, ...], z: ArrayLike) -> tuple[Array, Array]:
+    """Evaluate one factor; returns batch-first e (1, m) and J (1, m, D)."""
     k = KINDS[kind]
-    vs = tuple(_f(a).reshape(-1, d) for a, d in zip(args, k.var_dims, strict=True))
-    return k.evaluate(*vs, _f(z).reshape(-1, k.meas_dim))
+    vs = tuple(_f(a).reshape(d, 1) for a, d in zip(args, k.var_dims, strict=True))
+    e, J = k.evaluate(*vs, _f(z).reshape(k.meas_dim, 1))
+    return e.T, np.moveaxis(J, -1, 0)
 
 
 def _split(kind: str, J: Array) -> tuple[Array, ...]:

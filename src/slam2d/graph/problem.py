@@ -50,8 +50,12 @@ class _TypePlan:
     block: FactorBlock
     var_idx: list[IntArray]  # per argument: index into poses or points arrays
     cols: IntArray  # (N, D) global columns, -1 for held variables
-    h_pos: IntArray  # (N*D*D,) positions in H data (nnz = dump)
-    g_pos: IntArray  # (N*D,) positions in the gradient (n = dump)
+    h_pos: IntArray  # (Pp*N,) positions in H data of the local upper pairs, pair-major (nnz = dump)
+    g_pos: IntArray  # (D*N,) positions in the gradient, column-major (n = dump)
+    pa: IntArray  # (Pp,) local row of each upper pair
+    pb: IntArray  # (Pp,) local column of each upper pair
+    zT: Array  # (meas_dim, N) measurements, batch-last
+    LT: Array  # (m, m, N) sqrt information, batch-last
 
 
 class Analysis:
@@ -135,7 +139,9 @@ class Analysis:
         n = 3 * self.free_pose.size + 2 * self.free_point.size
         self.n = n
 
-        all_keys, plans_cols = [], []
+        # local upper pairs (a <= b) of each factor's D x D block; H is symmetric, so pair (a, b) goes to the global
+        # upper position (min(ga, gb), max(ga, gb)) whatever the order of the factor's variables
+        all_keys, plans_cols, pairs = [], [], []
         for b, idx in zip(blocks, var_idx, strict=True):
             parts = []
             for vk, ix in zip(KINDS[b.kind].var_kinds, idx, strict=True):
@@ -145,11 +151,13 @@ class Analysis:
                 c[off < 0] = -1
                 parts.append(c)
             cc = np.concatenate(parts, axis=1)
-            R, C = cc[:, :, None], cc[:, None, :]
-            ok = (R >= 0) & (C >= 0) & (R <= C)
-            key = np.where(ok, C * n + R, -1).reshape(-1)
+            pa, pb = np.triu_indices(cc.shape[1])
+            ga, gb = cc[:, pa].T, cc[:, pb].T  # (Pp, N)
+            ok = (ga >= 0) & (gb >= 0)
+            key = np.where(ok, np.maximum(ga, gb) * n + np.minimum(ga, gb), -1).reshape(-1)
             all_keys.append(key)
             plans_cols.append(cc)
+            pairs.append((pa.astype(np.int64), pb.astype(np.int64)))
         cat = np.concatenate(all_keys) if all_keys else np.zeros(0, np.int64)
         valid = cat >= 0
         uniq, inv = np.unique(cat[valid], return_inverse=True)
@@ -167,11 +175,12 @@ class Analysis:
         self.diag_pos = dp
         self.plans: list[_TypePlan] = []
         start = 0
-        for b, idx, cc in zip(blocks, var_idx, plans_cols, strict=True):
-            size = cc.shape[0] * cc.shape[1] * cc.shape[1]
-            gp = cc.reshape(-1).copy()
+        for b, idx, cc, (pa, pb) in zip(blocks, var_idx, plans_cols, pairs, strict=True):
+            size = pa.size * cc.shape[0]
+            gp = cc.T.reshape(-1).copy()
             gp[gp < 0] = n
-            self.plans.append(_TypePlan(b, idx, cc, pos_all[start : start + size], gp))
+            self.plans.append(_TypePlan(b, idx, cc, pos_all[start : start + size], gp, pa, pb,
+                                        np.ascontiguousarray(b.z.T), np.ascontiguousarray(np.moveaxis(b.sqrt_info, 0, -1))))
             start += size
 
     def compatible(self, graph: FactorGraph, values: Values) -> bool:
@@ -181,20 +190,38 @@ class Analysis:
                 and np.array_equal(values.point_keys, self.point_keys))
 
     # ------------------------------------------------------------------------------------------ evaluation
-    def _gather(self, plan: _TypePlan, poses: Array, points: Array) -> list[Array]:
+    def _gather(self, plan: _TypePlan, posesT: Array, pointsT: Array) -> list[Array]:
         out = []
         for vk, ix in zip(KINDS[plan.block.kind].var_kinds, plan.var_idx, strict=True):
-            out.append(poses[ix] if vk == "pose" else points[ix])
+            out.append(posesT[:, ix] if vk == "pose" else pointsT[:, ix])
         return out
+
+    @staticmethod
+    def _whiten(LT: Array, x: Array) -> Array:
+        """L x per factor for upper-triangular L (LT[i, k] is an (N,) row; it broadcasts over x's middle axis).
+        Shapes: (m,m,N),(m,N) -> (m,N) or (m,m,N),(m,D,N) -> (m,D,N)."""
+        out = np.empty_like(x)
+        for i in range(LT.shape[0]):
+            acc = LT[i, i] * x[i]
+            for k in range(i + 1, LT.shape[0]):
+                acc += LT[i, k] * x[k]
+            out[i] = acc
+        return out
+
+    def _residuals(self, plan: _TypePlan, posesT: Array, pointsT: Array) -> tuple[Array, Array]:
+        """Whitened residual r (m, N) and whitened Jacobian A (m, D, N)."""
+        e, J = KINDS[plan.block.kind].evaluate(*self._gather(plan, posesT, pointsT), plan.zT)
+        return self._whiten(plan.LT, e), self._whiten(plan.LT, J)
 
     def errors(self, poses: Array, points: Array) -> list[tuple[str, Array, Array, Array]]:
         """Per type: (kind, whitened squared error s (N,), robust cost rho (N,), IRLS weight w (N,))."""
         out = []
+        posesT, pointsT = np.ascontiguousarray(poses.T), np.ascontiguousarray(points.T)
         for plan in self.plans:
             b = plan.block
-            e, _ = _evaluate_residual(b.kind, self._gather(plan, poses, points), b.z)
-            r = np.einsum("nij,nj->ni", b.sqrt_info, e)
-            s = np.einsum("ni,ni->n", r, r)
+            e, _ = KINDS[b.kind].evaluate(*self._gather(plan, posesT, pointsT), plan.zT)
+            r = self._whiten(plan.LT, e)
+            s = np.einsum("in,in->n", r, r)
             rho, w = robustify(s, b.kernel, b.kernel_param)
             out.append((b.kind, s, rho, w))
         return out
@@ -204,22 +231,25 @@ class Analysis:
         data = np.zeros(self.nnz + 1)
         grad = np.zeros(self.n + 1)
         cost = chi2 = 0.0
+        posesT, pointsT = np.ascontiguousarray(poses.T), np.ascontiguousarray(points.T)
         for plan in self.plans:
             b = plan.block
-            e, J = KINDS[b.kind].evaluate(*self._gather(plan, poses, points), b.z)
-            r = np.einsum("nij,nj->ni", b.sqrt_info, e)
-            A = b.sqrt_info @ J
-            s = np.einsum("ni,ni->n", r, r)
+            r, A = self._residuals(plan, posesT, pointsT)
+            s = np.einsum("in,in->n", r, r)
             rho, w = robustify(s, b.kernel, b.kernel_param)
             cost += float(rho.sum())
             chi2 += float(s.sum())
             if np.any(w != 1.0):
                 sw = np.sqrt(w)
-                A = A * sw[:, None, None]
-                r = r * sw[:, None]
-            Hf = np.swapaxes(A, 1, 2) @ A
-            gf = np.einsum("nmd,nm->nd", A, r)
-            data += np.bincount(plan.h_pos, weights=Hf.reshape(-1), minlength=self.nnz + 1)
+                A = A * sw
+                r = r * sw
+            # upper pairs of A^T A: sum over residual rows of products of two Jacobian columns
+            hf = A[0, plan.pa] * A[0, plan.pb]
+            gf = A[0] * r[0]
+            for i in range(1, A.shape[0]):
+                hf += A[i, plan.pa] * A[i, plan.pb]
+                gf += A[i] * r[i]
+            data += np.bincount(plan.h_pos, weights=hf.reshape(-1), minlength=self.nnz + 1)
             grad += np.bincount(plan.g_pos, weights=gf.reshape(-1), minlength=self.n + 1)
         return cost, chi2, data[: self.nnz], grad[: self.n]
 
@@ -266,10 +296,6 @@ class Analysis:
             cols.append(np.arange(2) + k3 + 2 * rk if rk >= 0 else np.full(2, -1))
             labels.append(("point", int(key)))
         return (np.concatenate(cols).astype(np.int64) if cols else np.zeros(0, np.int64)), labels
-
-
-def _evaluate_residual(kind: str, args: list[Array], z: Array) -> tuple[Array, Array | None]:
-    return KINDS[kind].evaluate(*args, z)
 
 
 def chi2(graph: FactorGraph, values: Values) -> float:
