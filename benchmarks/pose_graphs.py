@@ -23,12 +23,12 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from slam2d.graph import OptimizerConfig, Values, chi2, optimize  # noqa: E402
-from slam2d.graph.linear import available_solvers, make_solver  # noqa: E402
-from slam2d.graph.problem import Analysis  # noqa: E402
-from slam2d.io import read_graph  # noqa: E402
+from slam2d.graph import OptimizerConfig, Values, chi2, optimize
+from slam2d.graph.linear import available_solvers, make_solver
+from slam2d.graph.problem import Analysis
+from slam2d.io import read_graph
 
 DATA = Path(os.environ.get("SLAM2D_DATA", Path(__file__).resolve().parents[2] / "shared" / "datasets"))
 DATASETS = {

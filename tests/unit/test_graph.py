@@ -109,7 +109,7 @@ def test_sparse_step_equals_dense_lstsq_of_the_same_system():
     # independent dense assembly from the single-factor API
     rows_A, rows_r = [], []
     cols_of = {}
-    for k, i in zip(vals.pose_keys, range(vals.pose_keys.size), strict=True):
+    for k, _i in zip(vals.pose_keys, range(vals.pose_keys.size), strict=True):
         cols_of[("pose", int(k))] = an.variable_slices([k])[0]
     for k in vals.point_keys:
         cols_of[("point", int(k))] = an.variable_slices((), [k])[0]

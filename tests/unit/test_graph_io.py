@@ -68,7 +68,7 @@ def test_toro_round_trip_and_frame_conversion(tmp_path, rng):
     gf = read_toro(p)
     assert chi2(gf.graph, gf.values) == pytest.approx(chi2(g, sg.initial), rel=1e-10)
     # chi2 with TORO's own error convention (frame of pose i) and the file's numbers equals ours
-    line = [ln for ln in p.read_text().splitlines() if ln.startswith("EDGE2")][0].split()
+    line = next(ln for ln in p.read_text().splitlines() if ln.startswith("EDGE2")).split()
     i, j = int(line[1]), int(line[2])
     z = np.array(line[3:6], float)
     xx, xy, yy, tt, xt, yt = map(float, line[6:])

@@ -6,6 +6,9 @@ from slam2d.graph.graph import GraphError as GraphError
 from slam2d.graph.graph import Values as Values
 from slam2d.graph.linear import SolverError as SolverError
 from slam2d.graph.linear import available_solvers as available_solvers
+from slam2d.graph.marginals import Marginals as Marginals
+from slam2d.graph.marginals import density_arrays as density_arrays
+from slam2d.graph.marginals import marginal_covariances as marginal_covariances
 from slam2d.graph.optimizer import Optimizer as Optimizer
 from slam2d.graph.optimizer import OptimizerConfig as OptimizerConfig
 from slam2d.graph.optimizer import Summary as Summary
@@ -13,6 +16,3 @@ from slam2d.graph.optimizer import optimize as optimize
 from slam2d.graph.problem import Analysis as Analysis
 from slam2d.graph.problem import chi2 as chi2
 from slam2d.graph.problem import chi2_by_kind as chi2_by_kind
-from slam2d.graph.marginals import Marginals as Marginals
-from slam2d.graph.marginals import density_arrays as density_arrays
-from slam2d.graph.marginals import marginal_covariances as marginal_covariances

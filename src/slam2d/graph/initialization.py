@@ -135,7 +135,7 @@ def chordal_poses(graph: FactorGraph, pose_keys: ArrayLike, fixed: ArrayLike = (
     rx = c * z[:, 0] - s * z[:, 1]
     ry = s * z[:, 0] + c * z[:, 1]
     rows = []
-    for part, rr in ((0, rx), (1, ry)):
+    for part, _rr in ((0, rx), (1, ry)):
         rows.append((2 * er + part, var(cj, part), wt))
         rows.append((2 * er + part, var(ci, part), -wt))
     rhs_t = np.empty(2 * E)

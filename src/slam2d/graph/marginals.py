@@ -87,7 +87,7 @@ def density_arrays(graph: FactorGraph, values: Values, *, max_variables: int = 1
         raise ValueError(f"density_arrays forms the dense covariance: {V} variables > max_variables={max_variables}")
     cols, labels = an.variable_slices(values.pose_keys, values.point_keys)
     dims = np.array([3 if k == "pose" else 2 for k, _ in labels])
-    offs = np.concatenate([[0], np.cumsum(dims)])
+    np.concatenate([[0], np.cumsum(dims)])
     _, _, data, _ = an.linearize(values.poses, values.points)
     up = an.upper(data)
     Hf = np.zeros((cols.size, cols.size))

@@ -119,7 +119,7 @@ class Analysis:
         gauge_held = []
         if gauge == "first_pose":
             for comp in comp_ids[~anchored[comp_ids]]:
-                members = np.flatnonzero((labels[:P] == comp))
+                members = np.flatnonzero(labels[:P] == comp)
                 if members.size == 0:
                     continue  # points only: constrained by point priors / positions, or singular (reported later)
                 first = members[np.argmin(self.pose_keys[members])]
@@ -179,8 +179,9 @@ class Analysis:
             size = pa.size * cc.shape[0]
             gp = cc.T.reshape(-1).copy()
             gp[gp < 0] = n
+            LT = np.ascontiguousarray(np.moveaxis(b.sqrt_info, 0, -1))
             self.plans.append(_TypePlan(b, idx, cc, pos_all[start : start + size], gp, pa, pb,
-                                        np.ascontiguousarray(b.z.T), np.ascontiguousarray(np.moveaxis(b.sqrt_info, 0, -1))))
+                                        np.ascontiguousarray(b.z.T), LT))
             start += size
 
     def compatible(self, graph: FactorGraph, values: Values) -> bool:

@@ -3,8 +3,8 @@
 The information is given in the order xx, xy, yy, thth, xth, yth and belongs to the error expressed in the frame of
 pose i, ``e_T = [R_i^T (t_j - t_i) - [dx, dy] ; wrap(th_j - th_i - dth)]``. slam2d uses g2o's error
 ``e = Tr e_T`` with ``Tr = blockdiag(R(dth)^T, 1)``, so the equivalent information is ``Omega_g2o = Tr Omega_T Tr^T``
-and both problems have the same chi2 at every configuration (``../shared/datasets/README.md``). Reading converts, writing
-converts back. Error handling: see ``slam2d.io._text``.
+and both problems have the same chi2 at every configuration (``../shared/datasets/README.md``). Reading converts,
+writing converts back. Error handling: see ``slam2d.io._text``.
 """
 
 from __future__ import annotations
