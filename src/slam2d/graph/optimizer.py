@@ -5,7 +5,8 @@ Linear system per iteration: ``(H + lambda I) dx = -g`` with ``H = sum w J^T Ome
 (IRLS weights ``w`` of the robust kernels at the current point; ``w = 1`` without kernel).
 
 Levenberg-Marquardt solves ``(H + lambda D) dx = -g`` with Marquardt's scaling ``D = diag(H)`` (default; scale
-invariant, so ``lambda_0 = 1e-5`` means "almost Gauss-Newton" on every dataset) or Levenberg's ``D = I`` with
+invariant; the default ``lambda_0 = 1e-9`` starts as Gauss-Newton and damps only after a rejected step: measured
+on the staged datasets, 1e-5 cost intel 1, manhattan.g2o 4 and cityTrees10000 25 extra iterations) or Levenberg's ``D = I`` with
 ``lambda_0 = tau * max(diag H)`` (g2o's choice). Gain ratio ``rho = (F(x) - F(x + dx)) / (-g.dx + lambda dx.D dx)``
 (the decrease predicted by the linear model of F without the 1/2). A step is accepted when rho > 0; then lambda is
 divided by ``lambda_decrease_factor`` (10) if rho > 0.75, doubled if rho < 0.25, else kept. A rejected step
@@ -56,7 +57,7 @@ class OptimizerConfig:
     """stop when the largest step component is below this (m / rad)."""
     damping: Literal["marquardt", "levenberg"] = "marquardt"
     """LM: "marquardt" solves (H + lambda diag(H)) dx = -g (scale invariant); "levenberg" uses lambda I."""
-    lambda_initial_factor: float = 1e-5
+    lambda_initial_factor: float = 1e-9
     """LM: initial lambda (marquardt), or this * max(diag H) (levenberg, Nielsen's tau)."""
     lambda_decrease_factor: float = 10.0
     """LM: divide lambda by this after a step whose gain ratio exceeds 0.75."""
