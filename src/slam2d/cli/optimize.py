@@ -26,6 +26,8 @@ def register(sub: Any) -> None:
     p.add_argument("--init", choices=["file", "chordal"], default="file",
                    help="initial guess: the file's vertices / spanning tree (default) or chordal relaxation")
     p.add_argument("--max-iterations", type=int, default=100)
+    p.add_argument("--lambda-initial", type=float, default=OptimizerConfig().lambda_initial_factor,
+                   help="LM initial damping (relative to diag H; default %(default)g; Victoria Park needs ~1)")
     p.add_argument("--linear-solver", default="auto", help="auto, qdldl, cholmod, splu or dense")
     p.add_argument("--json", default=None, metavar="OUT", help="write a JSON summary")
     p.set_defaults(func=cmd)
@@ -52,7 +54,8 @@ def cmd(args: argparse.Namespace) -> int:
     gf = read_graph(args.input, args.format)
     kernel, param = _kernel(args.robust)
     cfg = OptimizerConfig(method=args.solver, max_iterations=args.max_iterations, robust_kernel=kernel,
-                          robust_param=param, linear_solver=args.linear_solver)
+                          robust_param=param, linear_solver=args.linear_solver,
+                          lambda_initial_factor=args.lambda_initial)
     values = _chordal(gf.graph, gf.values, gf.fixed_pose_keys) if args.init == "chordal" else gf.values
     out, s = optimize(gf.graph, values, cfg, fixed_pose_keys=gf.fixed_pose_keys)
     write_g2o(args.out, gf.graph, out, fixed_pose_keys=gf.fixed_pose_keys if gf.fixed_pose_keys.size else None)
