@@ -288,3 +288,28 @@ def test_chordal_initialisation_is_close_to_the_optimum():
     out, s = optimize(sg.graph, ch)
     ref, s2 = optimize(sg.graph, sg.initial)
     assert s.chi2_final == pytest.approx(s2.chi2_final, rel=1e-6)
+
+
+def test_graph_and_io_import_no_plotting_or_reference_libraries():
+    import subprocess
+    import sys
+
+    code = ("import importlib, sys\n"
+            "for m in ['slam2d.graph', 'slam2d.graph.synthetic', 'slam2d.io', 'slam2d.cli.optimize']:\n"
+            "    importlib.import_module(m)\n"
+            "print(','.join(m for m in ['matplotlib', 'gtsam', 'g2opy', 'g2o', 'fastapi'] if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == ""
+
+
+def test_robust_kernel_per_factor_and_per_type():
+    rng = np.random.default_rng(1)
+    g, vals = _random_graph(rng)
+    g.add_between([0], [5], [[9.0, 9.0, 3.0]], np.eye(3) * 100, robust="cauchy", robust_param=2.0)
+    b = g.block("between")
+    assert b.kernel[-1] == 2 and b.kernel_param[-1] == 2.0 and np.all(b.kernel[:-1] == 0)
+    opt = Optimizer(g, OptimizerConfig(robust_kernel="huber", robust_param=1.5, robust_kinds=("point",)))
+    _, s = opt.optimize(vals)
+    assert np.all(g.block("point").kernel == 1) and np.all(g.block("range").kernel == 0)
+    assert g.block("between").kernel[-1] == 2  # per-factor kernel kept
+    assert s.cost_final < s.chi2_final  # the robust cost is below the raw chi2 when some residuals are large
