@@ -1,13 +1,13 @@
 """Gauss-Newton and Levenberg-Marquardt on a :class:`FactorGraph`.
 
 Objective: ``F(x) = sum_f rho_f(e_f^T Omega_f e_f)`` (g2o's chi2 when no robust kernel is set; no 1/2).
-Linear system per iteration: ``(H + lambda I) dx = -g`` with ``H = sum w J^T Omega J``, ``g = sum w J^T Omega e``
-(IRLS weights ``w`` of the robust kernels at the current point; ``w = 1`` without kernel).
+Linear system per iteration: ``(H + lambda D) dx = -g`` (GN: lambda = 0) with ``H = sum w J^T Omega J``,
+``g = sum w J^T Omega e`` (IRLS weights ``w`` of the robust kernels at the current point; ``w = 1`` without kernel).
 
-Levenberg-Marquardt solves ``(H + lambda D) dx = -g`` with Marquardt's scaling ``D = diag(H)`` (default; scale
-invariant; the default ``lambda_0 = 1e-9`` starts as Gauss-Newton and damps only after a rejected step: measured
-on the staged datasets, 1e-5 cost intel 1, manhattan.g2o 4 and cityTrees10000 25 extra iterations) or Levenberg's ``D = I`` with
-``lambda_0 = tau * max(diag H)`` (g2o's choice). Gain ratio ``rho = (F(x) - F(x + dx)) / (-g.dx + lambda dx.D dx)``
+Levenberg-Marquardt uses Marquardt's scaling ``D = diag(H)`` (default; scale invariant; the default
+``lambda_0 = 1e-9`` starts as Gauss-Newton and damps only after a rejected step: measured on the staged datasets,
+``lambda_0 = 1e-5`` cost intel 1, manhattan.g2o 4 and cityTrees10000 25 extra iterations) or Levenberg's ``D = I``
+with ``lambda_0 = tau * max(diag H)`` (g2o's choice). Gain ratio ``rho = (F(x) - F(x + dx)) / (-g.dx + lambda dx.D dx)``
 (the decrease predicted by the linear model of F without the 1/2). A step is accepted when rho > 0; then lambda is
 divided by ``lambda_decrease_factor`` (10) if rho > 0.75, doubled if rho < 0.25, else kept. A rejected step
 multiplies lambda by nu and doubles nu (Nielsen's rule, Madsen, Nielsen & Tingleff 2004, sec. 3.2; nu resets to 2
