@@ -132,6 +132,12 @@ def test_sparse_step_equals_dense_lstsq_of_the_same_system():
     assert float(r @ r) == pytest.approx(chi2v, rel=1e-12)
     dx_dense = np.linalg.lstsq(A, -r, rcond=None)[0]
     np.testing.assert_allclose(grad, A.T @ r, rtol=1e-9, atol=1e-9)
+    up = an.upper(data)
+    assert up.nnz == an.nnz and np.all(np.diff(an.indptr) >= 1)
+    np.testing.assert_allclose(up.toarray(), np.triu(A.T @ A), rtol=1e-9, atol=1e-9)
+    for k in range(an.n):  # strictly increasing rows in every column, ending on the diagonal
+        rows = an.indices[an.indptr[k] : an.indptr[k + 1]]
+        assert np.all(np.diff(rows) > 0) and rows[-1] == k and an.diag_pos[k] == an.indptr[k + 1] - 1
     for name in available_solvers():
         s = make_solver(name)
         s.factorize(an.upper(data))

@@ -139,50 +139,83 @@ class Analysis:
         n = 3 * self.free_pose.size + 2 * self.free_point.size
         self.n = n
 
-        # local upper pairs (a <= b) of each factor's D x D block; H is symmetric, so pair (a, b) goes to the global
-        # upper position (min(ga, gb), max(ga, gb)) whatever the order of the factor's variables
-        all_keys, plans_cols, pairs = [], [], []
+        # --- pattern at the level of variable blocks (far fewer keys than scalar entries), expanded to scalars.
+        # Free variables are numbered in state order: v has offset voff[v] and dimension vdim[v].
+        Fp, Fl = self.free_pose.size, self.free_point.size
+        V = Fp + Fl
+        pose_var = np.full(P, -1, np.int64)
+        pose_var[self.free_pose] = np.arange(Fp)
+        point_var = np.full(L, -1, np.int64)
+        point_var[self.free_point] = Fp + np.arange(Fl)
+        vdim = np.concatenate([np.full(Fp, 3, np.int64), np.full(Fl, 2, np.int64)])
+        voff = (np.cumsum(vdim) - vdim).astype(np.int64)
+        bkeys, infos = [], []
         for b, idx in zip(blocks, var_idx, strict=True):
-            parts = []
-            for vk, ix in zip(KINDS[b.kind].var_kinds, idx, strict=True):
-                off = pose_off[ix] if vk == "pose" else point_off[ix]
-                d = 3 if vk == "pose" else 2
-                c = off[:, None] + np.arange(d)[None, :]
-                c[off < 0] = -1
-                parts.append(c)
-            cc = np.concatenate(parts, axis=1)
-            pa, pb = np.triu_indices(cc.shape[1])
-            ga, gb = cc[:, pa].T, cc[:, pb].T  # (Pp, N)
-            ok = (ga >= 0) & (gb >= 0)
-            key = np.where(ok, np.maximum(ga, gb) * n + np.minimum(ga, gb), -1).reshape(-1)
-            all_keys.append(key)
-            plans_cols.append(cc)
-            pairs.append((pa.astype(np.int64), pb.astype(np.int64)))
-        cat = np.concatenate(all_keys) if all_keys else np.zeros(0, np.int64)
+            kinds = KINDS[b.kind].var_kinds
+            U = np.stack([pose_var[ix] if vk == "pose" else point_var[ix] for vk, ix in zip(kinds, idx, strict=True)])
+            ka, kb = np.triu_indices(len(kinds))
+            ua, ub = U[ka], U[kb]  # (Kp, N) argument pairs A <= B
+            bk = np.where((ua >= 0) & (ub >= 0), np.maximum(ua, ub) * V + np.minimum(ua, ub), -1)
+            bkeys.append(bk.reshape(-1))
+            infos.append((U, ka, kb))
+        cat = np.concatenate(bkeys) if bkeys else np.zeros(0, np.int64)
         valid = cat >= 0
-        uniq, inv = np.unique(cat[valid], return_inverse=True)
-        # every free variable must have its diagonal block (it appears in some factor, else it would be held)
-        diag_keys = np.arange(n, dtype=np.int64) * (n + 1)
-        self.nnz = int(uniq.size)
-        pos_all = np.full(cat.size, self.nnz, np.int64)
-        pos_all[valid] = inv
-        self.indices = (uniq % max(n, 1)).astype(np.int32)
-        colnum = uniq // max(n, 1)
-        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(colnum, minlength=n))]).astype(np.int32)
-        dp = np.searchsorted(uniq, diag_keys)
-        if n and (np.any(dp >= uniq.size) or np.any(uniq[np.minimum(dp, uniq.size - 1)] != diag_keys)):
-            raise GraphError("internal: a free variable has no diagonal block")  # pragma: no cover
-        self.diag_pos = dp
+        ublk, binv_valid = np.unique(cat[valid], return_inverse=True)
+        binv = np.full(cat.size, -1, np.int64)
+        binv[valid] = binv_valid
+        bcol, brow = ublk // max(V, 1), ublk % max(V, 1)  # sorted by (column var, row var): diagonal block last
+        dr = vdim[brow]
+        offdiag = brow < bcol
+        excl = np.cumsum(dr) - dr
+        rowoff = excl - excl[np.searchsorted(bcol, bcol)]  # rows of the earlier blocks in the same block column
+        above = np.bincount(bcol[offdiag], weights=dr[offdiag], minlength=V).astype(np.int64)
+        col_var = np.repeat(np.arange(V), vdim)
+        col_comp = np.arange(n) - voff[col_var]
+        indptr = np.concatenate([[0], np.cumsum(above[col_var] + col_comp + 1)]).astype(np.int64)
+        colstart = indptr[:-1]
+        self.nnz = int(indptr[-1])
+        self.indptr = indptr.astype(np.int32)
+        indices = np.full(self.nnz, -1, np.int64)
+        dc = vdim[bcol]
+        for i in range(3):
+            for j in range(3):
+                m = (i < dr) & (j < dc) & (offdiag | (i <= j))
+                indices[colstart[voff[bcol[m]] + j] + rowoff[m] + i] = voff[brow[m]] + i
+        if np.any(indices < 0) or (V and not np.array_equal(np.unique(ublk[~offdiag] // max(V, 1)), np.arange(V))):
+            raise GraphError("internal: inconsistent Hessian pattern")  # pragma: no cover
+        self.indices = indices.astype(np.int32)
+        self.diag_pos = colstart + above[col_var] + col_comp
+        # --- per factor type: the data position of each local upper pair (pa <= pb) of the D x D block product.
+        # H is symmetric, so the pair goes to the global upper entry whatever the order of the factor's variables.
         self.plans: list[_TypePlan] = []
         start = 0
-        for b, idx, cc, (pa, pb) in zip(blocks, var_idx, plans_cols, pairs, strict=True):
-            size = pa.size * cc.shape[0]
-            gp = cc.T.reshape(-1).copy()
-            gp[gp < 0] = n
+        for b, idx, (U, ka, kb) in zip(blocks, var_idx, infos, strict=True):
+            kinds = KINDS[b.kind].var_kinds
+            N = b.size
+            dims = [3 if vk == "pose" else 2 for vk in kinds]
+            arg_of = np.repeat(np.arange(len(kinds)), dims)
+            comp_of = np.concatenate([np.arange(d) for d in dims])
+            pa, pb = np.triu_indices(int(sum(dims)))
+            kp_of = {(int(a), int(c)): k for k, (a, c) in enumerate(zip(ka, kb, strict=True))}
+            blk = binv[start : start + ka.size * N].reshape(ka.size, N)
+            start += ka.size * N
+            A, B = arg_of[pa], arg_of[pb]
+            kp = np.array([kp_of[(int(a), int(c))] for a, c in zip(A, B, strict=True)])
+            uA, uB = U[A], U[B]  # (Pp, N)
+            ia, ib = comp_of[pa][:, None], comp_of[pb][:, None]
+            swap = uA > uB
+            ii = np.where(swap, ib, ia)
+            jj = np.where(swap, ia, ib)
+            cvar = np.maximum(uA, uB)
+            bb = blk[kp]
+            ok = bb >= 0
+            h_pos = np.full((pa.size, N), self.nnz, np.int64)
+            h_pos[ok] = colstart[voff[cvar[ok]] + jj[ok]] + rowoff[bb[ok]] + ii[ok]
+            cols = np.where(U[arg_of] >= 0, voff[np.maximum(U[arg_of], 0)] + comp_of[:, None], -1)  # (D, N)
+            gp = np.where(cols >= 0, cols, n).reshape(-1)
             LT = np.ascontiguousarray(np.moveaxis(b.sqrt_info, 0, -1))
-            self.plans.append(_TypePlan(b, idx, cc, pos_all[start : start + size], gp, pa, pb,
-                                        np.ascontiguousarray(b.z.T), LT))
-            start += size
+            self.plans.append(_TypePlan(b, idx, cols.T, h_pos.reshape(-1), gp, pa.astype(np.int64),
+                                        pb.astype(np.int64), np.ascontiguousarray(b.z.T), LT))
 
     def compatible(self, graph: FactorGraph, values: Values) -> bool:
         """True when this analysis can be reused for (graph, values)."""
