@@ -211,10 +211,10 @@ class Analysis:
             ok = bb >= 0
             h_pos = np.full((pa.size, N), self.nnz, np.int64)
             h_pos[ok] = colstart[voff[cvar[ok]] + jj[ok]] + rowoff[bb[ok]] + ii[ok]
-            cols = np.where(U[arg_of] >= 0, voff[np.maximum(U[arg_of], 0)] + comp_of[:, None], -1)  # (D, N)
-            gp = np.where(cols >= 0, cols, n).reshape(-1)
+            gcols = np.where(U[arg_of] >= 0, voff[np.maximum(U[arg_of], 0)] + comp_of[:, None], -1)  # (D, N)
+            gp = np.where(gcols >= 0, gcols, n).reshape(-1)
             LT = np.ascontiguousarray(np.moveaxis(b.sqrt_info, 0, -1))
-            self.plans.append(_TypePlan(b, idx, cols.T, h_pos.reshape(-1), gp, pa.astype(np.int64),
+            self.plans.append(_TypePlan(b, idx, gcols.T, h_pos.reshape(-1), gp, pa.astype(np.int64),
                                         pb.astype(np.int64), np.ascontiguousarray(b.z.T), LT))
 
     def compatible(self, graph: FactorGraph, values: Values) -> bool:
