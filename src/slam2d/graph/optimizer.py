@@ -165,6 +165,7 @@ class Optimizer:
         cost, chi2v, data, g = an.linearize(poses, points)
         t_lin += time.perf_counter() - t0
         cost0, chi20 = cost, chi2v
+        hmat = an.upper(np.zeros(an.nnz))
         history = [cost]
         if cfg.damping == "levenberg":
             lam = cfg.lambda_initial_factor * float(data[an.diag_pos].max()) if an.n else 0.0
@@ -177,13 +178,14 @@ class Optimizer:
             termination = "no free variables"
         while an.n and it < cfg.max_iterations:
             it += 1
-            hd = data.copy()
+            # refill the values of one CSC matrix (no per-iteration sparse construction / format checks)
+            np.copyto(hmat.data, data)
             if cfg.method == "lm":
                 dscale = _damping_diag(data[an.diag_pos], cfg.damping)
-                hd[an.diag_pos] += lam * dscale
+                hmat.data[an.diag_pos] += lam * dscale
             t0 = time.perf_counter()
             try:
-                solver.factorize(an.upper(hd))
+                solver.factorize(hmat)
                 dx = -solver.solve(g)
             except SolverError:
                 if cfg.method == "gn":
