@@ -149,8 +149,10 @@ def test_optimizer_decreases_and_gn_lm_agree_on_random_graph():
     g, vals = _random_graph(rng)
     a, sa = optimize(g, vals, OptimizerConfig(method="gn", relative_decrease_tol=1e-12))
     b, sb = optimize(g, vals, OptimizerConfig(method="lm", relative_decrease_tol=1e-12))
+    c, sc = optimize(g, vals, OptimizerConfig(method="dogleg", relative_decrease_tol=1e-12))
     assert sa.chi2_final < sa.chi2_initial
     assert sa.chi2_final == pytest.approx(sb.chi2_final, rel=1e-8)
+    assert sc.chi2_final == pytest.approx(sb.chi2_final, rel=1e-8)
     np.testing.assert_allclose(a.poses, b.poses, atol=1e-5)
     # the gradient vanishes at the optimum
     an = Analysis(g, a)

@@ -14,13 +14,13 @@ from slam2d.io import FORMATS, read_graph, write_g2o
 
 def register(sub: Any) -> None:
     p = sub.add_parser("optimize", help="optimise a pose / landmark graph file",
-                       description="Optimise a 2D graph (g2o, TORO or iSAM text) with Gauss-Newton or "
-                                   "Levenberg-Marquardt; chi2 is g2o's sum of e^T Omega e.")
+                       description="Optimise a 2D graph (g2o, TORO or iSAM text) with Gauss-Newton, "
+                                   "Levenberg-Marquardt or Powell's dog leg; chi2 is g2o's sum of e^T Omega e.")
     p.add_argument("input", metavar="IN", help="graph file")
     p.add_argument("--format", choices=sorted(FORMATS), default=None,
                    help="input format (default: from the extension .g2o/.graph/.isam, else from the tags)")
     p.add_argument("--out", required=True, metavar="OUT.g2o", help="write the optimised graph here (g2o)")
-    p.add_argument("--solver", choices=["gn", "lm"], default="lm", help="optimiser (default lm)")
+    p.add_argument("--solver", choices=["gn", "lm", "dogleg"], default="lm", help="optimiser (default lm)")
     p.add_argument("--robust", default=None, metavar="KERNEL[:PARAM]",
                    help="robust kernel on every factor: huber, cauchy or dcs, optional parameter (default 1)")
     p.add_argument("--init", choices=["file", "chordal"], default="file",

@@ -15,6 +15,11 @@ on acceptance). Each rejected step costs one factorisation and counts as an iter
 ``max(1/3, 1 - (2 rho - 1)^3)`` was tried first: it needed 23 iterations instead of 5 on manhattan.g2o because
 lambda can only shrink 3x per step after the first, very nonlinear steps.)
 
+Powell's dog leg ("dogleg"; Madsen, Nielsen & Tingleff 2004, sec. 3.3): one factorisation per linearisation point
+gives the Gauss-Newton step; the step is GN, the scaled Cauchy step or the dog-leg blend inside the trust radius
+(initially the GN step length). rho as for LM with the undamped model; rho > 0.75: radius = max(radius, 3 |dx|);
+rho < 0.25: radius = |dx| / 2; a rejected step sets radius = |dx| / 4 and retries WITHOUT refactorising.
+
 Termination rule (checked after every accepted step; GN accepts every step):
   1. ``F_old - F_new <= absolute_decrease_tol``                         -> "absolute decrease"
   2. ``F_old - F_new <= relative_decrease_tol * F_old``                 -> "relative decrease"
@@ -32,6 +37,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import ArrayLike
 
 from slam2d.config import check_nonnegative, check_positive
@@ -45,8 +51,8 @@ from slam2d.graph.robust import kernel_code
 class OptimizerConfig:
     """Settings of :func:`optimize`."""
 
-    method: Literal["lm", "gn"] = "lm"
-    """"lm" (Levenberg-Marquardt, Nielsen damping) or "gn" (Gauss-Newton, undamped)."""
+    method: Literal["lm", "gn", "dogleg"] = "lm"
+    """"lm" (Levenberg-Marquardt), "gn" (Gauss-Newton, undamped) or "dogleg" (Powell's dog leg)."""
     max_iterations: int = 100
     """maximum number of iterations (accepted + rejected LM steps count; each is one factorisation)."""
     relative_decrease_tol: float = 1e-7
@@ -77,8 +83,8 @@ class OptimizerConfig:
     """hold the lowest-key pose of every component without a pose prior ("none": rely on priors)."""
 
     def __post_init__(self) -> None:
-        if self.method not in ("lm", "gn"):
-            raise ValueError(f"OptimizerConfig.method must be 'lm' or 'gn' (got {self.method!r})")
+        if self.method not in ("lm", "gn", "dogleg"):
+            raise ValueError(f"OptimizerConfig.method must be 'lm', 'gn' or 'dogleg' (got {self.method!r})")
         if self.max_iterations < 1:
             raise ValueError(f"OptimizerConfig.max_iterations must be >= 1 (got {self.max_iterations})")
         check_nonnegative(self, "relative_decrease_tol", "absolute_decrease_tol", "step_tol")
@@ -172,45 +178,98 @@ class Optimizer:
         else:
             lam = cfg.lambda_initial_factor
         nu = 2.0
+        radius, fresh = 0.0, True  # dogleg trust radius (0: start with the full Gauss-Newton step)
+        h_gn = h_cp = np.zeros(an.n)
+        n_gn = n_cp = predicted_dl = 0.0
         it = solves = rejected = consecutive = 0
         termination = "max iterations"
         if an.n == 0:
             termination = "no free variables"
         while an.n and it < cfg.max_iterations:
             it += 1
-            # refill the values of one CSC matrix (no per-iteration sparse construction / format checks)
-            np.copyto(hmat.data, data)
-            if cfg.method == "lm":
-                dscale = _damping_diag(data[an.diag_pos], cfg.damping)
-                hmat.data[an.diag_pos] += lam * dscale
-            t0 = time.perf_counter()
-            try:
-                solver.factorize(hmat)
-                dx = -solver.solve(g)
-            except SolverError:
-                if cfg.method == "gn":
-                    raise SolverError("Gauss-Newton: H is singular (unconstrained variables or missing gauge); "
-                                      "try --solver lm or add priors") from None
-                dx = np.full(an.n, np.nan)
-            t_fac += time.perf_counter() - t0
-            solves += 1
-            if not np.all(np.isfinite(dx)):
-                if cfg.method == "gn":
-                    raise SolverError("Gauss-Newton produced a non-finite step (H singular?)")
-                rejected += 1
-                consecutive += 1
-                lam *= nu
-                nu *= 2
-                if consecutive >= cfg.max_rejections or lam > cfg.lambda_max:
-                    termination = "no progress"
-                    break
-                continue
+            if cfg.method == "dogleg":
+                if fresh:  # new linearisation point: one factorisation gives the GN step for every radius tried
+                    np.copyto(hmat.data, data)
+                    t0 = time.perf_counter()
+                    try:
+                        solver.factorize(hmat)
+                        h_gn = -solver.solve(g)
+                    except SolverError:
+                        raise SolverError("dogleg: H is singular (unconstrained variables or missing gauge); "
+                                          "try --solver lm or add priors") from None
+                    t_fac += time.perf_counter() - t0
+                    solves += 1
+                    hg = _sym_matvec(hmat, data[an.diag_pos], g)
+                    gg, ghg = float(np.einsum("i,i->", g, g)), float(np.einsum("i,i->", g, hg))
+                    h_cp = -(gg / ghg) * g if ghg > 0 else -g
+                    n_gn, n_cp = float(np.linalg.norm(h_gn)), float(np.linalg.norm(h_cp))
+                    if radius <= 0:
+                        radius = n_gn
+                    fresh = False
+                if n_gn <= radius:
+                    dx = h_gn
+                elif n_cp >= radius:
+                    dx = (radius / n_cp) * h_cp
+                else:  # |h_cp + beta (h_gn - h_cp)| = radius, beta in (0, 1)
+                    d = h_gn - h_cp
+                    qa = float(np.einsum("i,i->", d, d))
+                    qb = 2.0 * float(np.einsum("i,i->", h_cp, d))
+                    qc = n_cp * n_cp - radius * radius
+                    beta = (-qb + np.sqrt(max(qb * qb - 4 * qa * qc, 0.0))) / (2 * qa)
+                    dx = h_cp + beta * d
+                predicted_dl = -(2.0 * float(np.einsum("i,i->", g, dx))
+                                 + float(np.einsum("i,i->", dx, _sym_matvec(hmat, data[an.diag_pos], dx))))
+            else:
+                # refill the values of one CSC matrix (no per-iteration sparse construction / format checks)
+                np.copyto(hmat.data, data)
+                if cfg.method == "lm":
+                    dscale = _damping_diag(data[an.diag_pos], cfg.damping)
+                    hmat.data[an.diag_pos] += lam * dscale
+                t0 = time.perf_counter()
+                try:
+                    solver.factorize(hmat)
+                    dx = -solver.solve(g)
+                except SolverError:
+                    if cfg.method == "gn":
+                        raise SolverError("Gauss-Newton: H is singular (unconstrained variables or missing gauge); "
+                                          "try --solver lm or add priors") from None
+                    dx = np.full(an.n, np.nan)
+                t_fac += time.perf_counter() - t0
+                solves += 1
+                if not np.all(np.isfinite(dx)):
+                    if cfg.method == "gn":
+                        raise SolverError("Gauss-Newton produced a non-finite step (H singular?)")
+                    rejected += 1
+                    consecutive += 1
+                    lam *= nu
+                    nu *= 2
+                    if consecutive >= cfg.max_rejections or lam > cfg.lambda_max:
+                        termination = "no progress"
+                        break
+                    continue
             p_new, q_new = an.retract(poses, points, dx)
             t0 = time.perf_counter()
             cost_new, chi2_new, data_new, g_new = an.linearize(p_new, q_new)
             t_lin += time.perf_counter() - t0
             decrease = cost - cost_new
-            if cfg.method == "lm":
+            if cfg.method == "dogleg":
+                rho = decrease / predicted_dl if predicted_dl > 0 else -1.0
+                step_norm = float(np.linalg.norm(dx))
+                if not (rho > 0 and np.isfinite(cost_new)):
+                    rejected += 1
+                    consecutive += 1
+                    radius = 0.25 * step_norm
+                    if consecutive >= cfg.max_rejections or radius <= cfg.step_tol:
+                        termination = "no progress"
+                        break
+                    continue
+                consecutive = 0
+                if rho > 0.75:
+                    radius = max(radius, 3.0 * step_norm)
+                elif rho < 0.25:
+                    radius = 0.5 * step_norm
+                fresh = True
+            elif cfg.method == "lm":
                 # einsum, not BLAS: a threaded BLAS dot costs milliseconds on a busy machine
                 predicted = float(-np.einsum("i,i->", g, dx) + lam * np.einsum("i,i,i->", dx, dscale, dx))
                 rho = decrease / predicted if predicted > 0 else -1.0
@@ -259,6 +318,11 @@ class Optimizer:
             gauge_pose_keys=[int(k) for k in an.gauge_pose_keys], lambda_final=lam, cost_history=history,
         )
         return out, summary
+
+
+def _sym_matvec(upper: sp.csc_matrix, diag: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """H x from the upper triangle of symmetric H. Shapes: (n,) -> (n,)."""
+    return np.asarray(upper @ x + upper.T @ x - diag * x)
 
 
 def _damping_diag(diag: np.ndarray, damping: str) -> np.ndarray:
