@@ -143,6 +143,7 @@ def main(argv=None) -> int:
         runners = {
             "slam2d LM": lambda gf=gf: _slam(gf, "lm"),
             "slam2d GN": lambda gf=gf: _slam(gf, "gn"),
+            "slam2d DL": lambda gf=gf: _slam(gf, "dogleg"),
         }
         g = gtsam_runner(gf)
         if g:
