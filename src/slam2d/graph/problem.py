@@ -2,9 +2,12 @@
 
 :class:`Analysis` resolves factor keys to variable indices, finds connected components and fixes the gauge, lays
 out the state vector, builds the CSC pattern of the UPPER triangle of ``H = J^T Omega J`` and precomputes, for every
-factor type, the position in H's data array of each entry of that factor's local ``D x D`` block (entries below the
-diagonal or touching a held variable go to a dump slot). An iteration then only evaluates residuals/Jacobians in
-one vectorised call per factor type and scatters the block products with ``np.bincount``.
+factor type, the position in H's data array of each upper-triangle entry (a <= b) of that factor's local ``D x D``
+block product (mapped to the global upper entry; entries touching a held variable go to a dump slot). The pattern is
+built from the variable-block structure and expanded to scalars. The fill-reducing ordering is the linear solver's
+(AMD inside qdldl / CHOLMOD, MMD in SuperLU), computed once on the first factorisation. An iteration then only
+evaluates residuals/Jacobians in one vectorised call per factor type (batch-last arrays) and scatters the block
+products with ``np.bincount``.
 
 Gauge rule: a connected component of the factor graph is *anchored* if it contains a pose prior factor or a pose
 the caller holds fixed; otherwise its lowest-key pose is held fixed (the convention of the reference numbers:
@@ -132,10 +135,6 @@ class Analysis:
         # --- state layout: free poses (3 each) then free points (2 each)
         self.free_pose = np.flatnonzero(~self.held_pose)
         self.free_point = np.flatnonzero(~self.held_point)
-        pose_off = np.full(P, -1, np.int64)
-        pose_off[self.free_pose] = 3 * np.arange(self.free_pose.size)
-        point_off = np.full(L, -1, np.int64)
-        point_off[self.free_point] = 3 * self.free_pose.size + 2 * np.arange(self.free_point.size)
         n = 3 * self.free_pose.size + 2 * self.free_point.size
         self.n = n
 
