@@ -7,6 +7,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from slam2d.graph.linear import SolverError
 from slam2d.log import LogFormatError
 
 #: one module per sub-command; each defines ``register(subparsers)`` and sets ``func`` on its parser
@@ -18,6 +19,7 @@ COMMANDS = [
     "slam2d.cli.sweep",
     "slam2d.cli.report",
     "slam2d.cli.datasets",
+    "slam2d.cli.optimize",
 ]
 
 
@@ -37,7 +39,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except (ValueError, LogFormatError, FileNotFoundError) as e:
+    except (ValueError, LogFormatError, FileNotFoundError, SolverError) as e:
         print(f"slam2d {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
