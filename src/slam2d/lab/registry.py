@@ -44,7 +44,9 @@ def _load_builtin() -> None:
 
 
 #: modules whose import registers more estimators; each back end adds its own line here
-_BUILTIN_MODULES: list[str] = []
+_BUILTIN_MODULES: list[str] = [
+    "slam2d.graph.online",
+]
 
 
 def estimator_names() -> list[str]:
