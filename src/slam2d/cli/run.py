@@ -12,7 +12,7 @@ from slam2d.log import Log
 from slam2d.sim.scenarios import SCENARIOS
 
 COLUMNS = ["estimator", "scenario", "seed", "steps", "ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_rad",
-           "final_pose_error_m", "landmarks_estimated", "step_ms_mean"]
+           "final_pose_error_m", "landmarks_estimated", "step_ms_mean", "loops_accepted", "loops_false"]
 
 
 def register(sub: Any) -> None:
@@ -24,13 +24,18 @@ def register(sub: Any) -> None:
     p.add_argument("--estimator", default="dead-reckoning", help=f"one of: {', '.join(estimator_names())}")
     p.add_argument("--seed", type=int, default=0, help="seed for the simulation and the estimator (default 0)")
     p.add_argument("--json", default=None, metavar="OUT", help="write the flat result record as JSON")
+    p.add_argument("--no-loop-closure", action="store_true",
+                   help="switch the estimator's loop closure off (estimators that have one, e.g. graph)")
     add_set_argument(p)
     p.set_defaults(func=cmd)
 
 
 def cmd(args: argparse.Namespace) -> int:
     log = Log.load(args.log) if args.log else None
-    _, record = run_named(args.estimator, args.scenario or "room", seed=args.seed, overrides=overrides_from(args),
+    overrides: dict[str, str] = overrides_from(args)
+    if args.no_loop_closure:
+        overrides["estimator.loop_closure"] = "false"
+    _, record = run_named(args.estimator, args.scenario or "room", seed=args.seed, overrides=overrides,
                           log=log, progress=None)
     print_table([record], [c for c in COLUMNS if c in record])
     if args.json:

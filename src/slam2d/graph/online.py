@@ -178,8 +178,11 @@ class GraphSLAM:
         loop_added = False
         if len(obs):
             self._add_landmark_factors(t, pose, obs)
-            if cfg.loop_closure and t % cfg.keyframe_every == 0:
-                loop_added = self._detect_loop(t, obs.z)
+            if t % cfg.keyframe_every == 0:
+                if cfg.loop_closure:
+                    loop_added = self._detect_loop(t, obs.z)
+                else:
+                    self._remember_keyframe(t, obs.z)
         else:
             self.last_assignment = np.zeros(0, dtype=np.int64)
         if loop_added or t % cfg.optimize_every == 0:
@@ -214,6 +217,34 @@ class GraphSLAM:
         if not self._finalized:
             self._optimize(self.config.final_iterations)
             self._finalized = True
+
+    def close_loop_now(self, z: Array) -> bool:
+        """Try to close a loop from observations ``z`` (K,2) taken at the newest pose, whatever ``loop_closure``
+        says, and optimise to convergence if one is accepted (the lab's "close loop" button)."""
+        added = self._detect_loop(self.index, np.asarray(z, dtype=np.float64).reshape(-1, 2), add_keyframe=False)
+        if added:
+            self._optimize(self.config.final_iterations)
+        return added
+
+    def chi2_per_dof(self) -> dict[str, float]:
+        """Mean whitened squared error per measurement dimension: odometry, loop and landmark factors separately
+        (about 1 each when the noise models are right; far above 1 flags the factors that are being violated)."""
+        from slam2d.graph.problem import factor_chi2
+
+        out: dict[str, float] = {}
+        for b in self.graph.blocks():
+            if not b.size:
+                continue
+            chi = factor_chi2(self.graph, self.values, b.kind)
+            if b.kind == "between":
+                odo = b.keys[1] == b.keys[0] + 1
+                groups = {"odometry": odo, "loop": ~odo}
+            else:
+                groups = {b.kind: np.ones(b.size, dtype=bool)}
+            for name, mask in groups.items():
+                if np.any(mask):
+                    out[name] = float(chi[mask].sum()) / (int(mask.sum()) * b.z.shape[1])
+        return out
 
     def graph_view(self) -> dict[str, Any]:
         """Nodes and edges for drawing: pose/point positions and edges (i, j, type) as index arrays."""
@@ -327,7 +358,12 @@ class GraphSLAM:
                              f"{cfg.association.method!r} needs slam2d.association.associate")
         return np.asarray(assoc_fn(obs, cands, cfg.association, rng=self.rng).assignment, dtype=np.int64)
 
-    def _detect_loop(self, t: int, z: Array) -> bool:
+    def _remember_keyframe(self, t: int, z: Array) -> None:
+        pts, covs = observation_points(z, self.config.sensor.covariance)
+        if self.db.add(t, pts):
+            self.keyframes[t] = (pts, covs)
+
+    def _detect_loop(self, t: int, z: Array, add_keyframe: bool = True) -> bool:
         cfg = self.config
         pts, covs = observation_points(z, cfg.sensor.covariance)
         hits = self.db.query(pts, t)
@@ -352,7 +388,7 @@ class GraphSLAM:
                 self.graph.add_between([a], [t], hyp.T_a_b[None], info[None], robust=kernel)
                 accepted = True
                 break
-        if self.db.add(t, pts):
+        if add_keyframe and self.db.add(t, pts):
             self.keyframes[t] = (pts, covs)
         return accepted
 
