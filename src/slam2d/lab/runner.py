@@ -13,8 +13,8 @@ from numpy.typing import NDArray
 
 from slam2d.config import split_overrides, to_dict, with_overrides
 from slam2d.eval.trajectory import ate, rpe
-from slam2d.geometry import se2
 from slam2d.filters.base import Estimate, Estimator
+from slam2d.geometry import se2
 from slam2d.lab.registry import get_spec, make_config
 from slam2d.log import Log
 from slam2d.sim.scenarios import ScenarioConfig
