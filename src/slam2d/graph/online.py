@@ -279,14 +279,14 @@ class GraphSLAM:
         cfg = self.config
         R = cfg.sensor.covariance
         z = obs.z
-        keys = np.asarray(self.values.point_keys)
+        keys = np.asarray(self.values.point_keys, dtype=np.int64)
         if cfg.association.method == "known":
             assign = np.full(len(obs), CLUTTER, dtype=np.int64)
             for i, sid in enumerate(obs.landmark_id):
                 sid = int(sid)
                 if sid < 0:
                     continue
-                key = self.alias.get(sid, sid if sid not in self.alias.values() else None)
+                key: int | None = self.alias.get(sid, sid)
                 if key is not None and key in self.last_seen and not cfg.loop_closure \
                         and t - self.last_seen[key] > cfg.revisit_gap_steps:
                     key = None  # not recognised: it will start a new landmark
@@ -310,14 +310,14 @@ class GraphSLAM:
         # a new landmark is initialised from its first sighting (inverse sensor model)
         seen: set[int] = set()
         init_keys, init_pts = [], []
-        for i in fresh:
-            k = int(assign[i])
+        for j in fresh:
+            k = int(assign[j])
             if k in seen:
                 continue
             seen.add(k)
             init_keys.append(k)
-            init_pts.append(range_bearing_inverse(pose, z[i]))
-            gp, gz = range_bearing_inverse_jacobians(pose, z[i])
+            init_pts.append(range_bearing_inverse(pose, z[j]))
+            gp, gz = range_bearing_inverse_jacobians(pose, z[j])
             self.point_cov[k] = gp @ self.pose_cov @ gp.T + gz @ R @ gz.T
         if init_keys:
             self.values.add_points(init_keys, np.array(init_pts))
@@ -328,7 +328,7 @@ class GraphSLAM:
             self.last_seen[int(k)] = t
         self.last_assignment = assign
 
-    def _associate(self, t: int, pose: Array, obs: Any, keys: Array) -> Array:
+    def _associate(self, t: int, pose: Array, obs: Any, keys: NDArray[np.int64]) -> NDArray[np.int64]:
         """Unknown association: candidates in range, S from the marginals, the configured method."""
         cfg = self.config
         R = cfg.sensor.covariance
