@@ -22,7 +22,8 @@ def _tiny_log():
 def test_forget_revisits_rekeys_exactly_after_gaps():
     log = _tiny_log()
     out = forget_revisits(log, gap_steps=10)
-    by_step = dict(zip(zip(log.obs_step.tolist(), log.obs_id.tolist()), out.obs_id.tolist(), strict=True))
+    keys = zip(log.obs_step.tolist(), log.obs_id.tolist(), strict=True)
+    by_step = dict(zip(keys, out.obs_id.tolist(), strict=True))
     assert by_step[(1, 0)] == by_step[(2, 0)] == by_step[(3, 0)] == 0
     assert by_step[(50, 0)] == by_step[(51, 0)] == 2  # second visit of landmark 0: 0 + span(2) * 1
     assert by_step[(200, 0)] == 4  # third visit
