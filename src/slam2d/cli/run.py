@@ -42,6 +42,8 @@ def register(sub: Any) -> None:
     p.add_argument("--json", default=None, metavar="OUT", help="write the flat result record as JSON")
     p.add_argument("--association", default=None, choices=list(METHODS),
                    help="data association method of the estimator (estimators that associate)")
+    p.add_argument("--no-loop-closure", action="store_true",
+                   help="switch the estimator's loop closure off (estimators that have one, e.g. graph)")
     add_set_argument(p)
     p.set_defaults(func=cmd)
 
@@ -72,6 +74,8 @@ def cmd(args: argparse.Namespace) -> int:
     overrides: dict[str, str] = overrides_from(args)
     if args.association:
         overrides["estimator.association.method"] = args.association
+    if args.no_loop_closure:
+        overrides["estimator.loop_closure"] = "false"
     if log is not None and log.metadata.get("gps_role") == "evaluation":
         # GPS kept for scoring only: an estimator that can fuse GPS must not see it unless asked explicitly
         fields = {f.name for f in dataclasses.fields(get_spec(args.estimator).config_cls)}

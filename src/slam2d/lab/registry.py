@@ -51,6 +51,7 @@ def _load_builtin() -> None:
 _BUILTIN_MODULES: list[str] = [
     "slam2d.filters.ekf_slam",
     "slam2d.filters.fastslam",
+    "slam2d.graph.online",
 ]
 
 
