@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from slam2d.cli.common import add_set_argument, overrides_from, print_table, write_json
-from slam2d.config import check_positive, with_overrides
+from slam2d.config import check_positive, to_dict, with_overrides
 
 
 @dataclass(frozen=True)
@@ -136,11 +136,70 @@ def _consistency(seeds: Sequence[int], overrides: Mapping[str, str]) -> Experime
                             f"{100 * cfg.probability:.0f} % band per step")
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class BreakitExperimentConfig:
+    """Settings of ``slam2d experiment breakit``."""
+
+    estimators: tuple[str, ...] = ("ekf", "fastslam", "graph")
+    """estimators to break."""
+    scenario: str = "loop"
+    """simulated scenario (the loop makes 'no loop closure' matter)."""
+    steps: int = 0
+    """steps per run (0: the scenario's default)."""
+    figure: str = "out/breakit.png"
+    """where to draw the bar chart ("" for none)."""
+
+    def __post_init__(self) -> None:
+        if self.steps < 0:
+            raise ValueError(f"BreakitExperimentConfig.steps must be >= 0 (got {self.steps})")
+
+
+def _breakit(seeds: Sequence[int], overrides: Mapping[str, str]) -> ExperimentOutput:
+    from slam2d.lab.breakit import breakit_experiment
+
+    cfg = with_overrides(BreakitExperimentConfig(), dict(overrides))
+    rows = breakit_experiment(cfg.estimators, tuple(seeds), cfg.scenario, cfg.steps or None)
+    if cfg.figure:
+        from slam2d.viz.figures import save_breakit_figure
+
+        print(f"wrote {save_breakit_figure(rows, cfg.figure)}")
+    cols = ["estimator", "condition", "runs", "ate_mean_m", "ate_std_m", "map_rmse_mean_m"]
+    return ExperimentOutput(rows, cols, {"config": to_dict(cfg), "seeds": list(seeds), "rows": rows},
+                            f"break-it on '{cfg.scenario}' over {len(seeds)} seeds (known association)")
+
+
+def _loop_closure(seeds: Sequence[int], overrides: Mapping[str, str]) -> ExperimentOutput:
+    from slam2d.lab.loop_experiment import loop_closure_experiment
+
+    if overrides:
+        raise ValueError(f"the loop-closure experiment takes no --set keys (got {sorted(overrides)})")
+    rows = [loop_closure_experiment(seed) for seed in seeds]
+    cols = ["seed", "loop_closed", "final_error_before_m", "final_error_after_m", "ate_no_loop_closure_m",
+            "ate_closed_once_m", "ate_online_loop_closure_m", "correction_distance_corr"]
+    return ExperimentOutput(rows, cols, {"rows": rows},
+                            "graph SLAM around the 200 m loop: drift without loop closure, then one closure")
+
+
+def _offset_puzzle(seeds: Sequence[int], overrides: Mapping[str, str]) -> ExperimentOutput:
+    from slam2d.lab.loop_experiment import offset_puzzle
+
+    if overrides:
+        raise ValueError(f"the offset-puzzle experiment takes no --set keys (got {sorted(overrides)})")
+    rows = [{"seed": seed, **r} for seed in seeds for r in offset_puzzle(seed)]
+    cols = ["seed", "case", "loop_accepted", "gap_m", "final_error_m", "ate_m", "chi2_per_dof_odometry",
+            "chi2_per_dof_loop", "chi2_per_dof_range_bearing"]
+    return ExperimentOutput(rows, cols, {"rows": rows},
+                            "the '2 m offset' puzzle: a loop that fires but cannot pull the path back")
+
+
 #: experiment name -> function(seeds, overrides) -> ExperimentOutput; add new experiments here
 EXPERIMENTS: dict[str, Callable[[Sequence[int], Mapping[str, str]], ExperimentOutput]] = {
     "association": _association,
     "scaling": _scaling,
     "consistency": _consistency,
+    "breakit": _breakit,
+    "loop-closure": _loop_closure,
+    "offset-puzzle": _offset_puzzle,
 }
 
 
