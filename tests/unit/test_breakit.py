@@ -48,3 +48,15 @@ def test_thin_landmarks_keeps_one_in_five():
     kept = np.unique(out.obs_id[out.obs_id >= 0])
     assert len(kept) == 20
     assert sum(len(s.observations) for s in out) == len(out.obs_step)
+
+
+def test_breakit_experiment_damages_every_back_end():
+    from slam2d.lab.breakit import CONDITIONS, breakit_experiment
+
+    rows = breakit_experiment(("ekf", "graph"), (0,), "room", steps=80)
+    assert len(rows) == 2 * len(CONDITIONS)
+    for est in ("ekf", "graph"):
+        by = {r["condition"]: r for r in rows if r["estimator"] == est}
+        # half the associations wrong is far worse than the baseline for every back end
+        assert by["wrong-association"]["ate_mean_m"] > 5 * by["baseline"]["ate_mean_m"]
+        assert by["baseline"]["ate_mean_m"] < 0.2

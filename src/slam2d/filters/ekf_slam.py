@@ -693,12 +693,3 @@ class EKFSLAM:
         if self._desc is not None:
             self._desc = self._desc[keep]
         self._removed += int(np.sum(drop))
-
-
-def _register() -> None:
-    from slam2d.lab.registry import register_estimator
-
-    register_estimator("ekf", EKFConfig, EKFSLAM, "EKF-SLAM: joint Gaussian over pose and landmarks, O(N^2) update")
-
-
-_register()

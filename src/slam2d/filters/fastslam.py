@@ -751,19 +751,3 @@ class FastSLAM:
                 "version": self.config.version,
             },
         )
-
-
-def _make(config: FastSLAMConfig) -> FastSLAM:
-    return FastSLAM(config)
-
-
-def _register() -> None:
-    from slam2d.lab.registry import register_estimator
-
-    register_estimator("fastslam", FastSLAMConfig, _make,
-                       "FastSLAM 1.0: particles over paths, per-particle landmark EKFs, motion-model proposal")
-    register_estimator("fastslam2", FastSLAM2Config, _make,
-                       "FastSLAM 2.0: FastSLAM with the proposal conditioned on the observations")
-
-
-_register()

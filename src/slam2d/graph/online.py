@@ -372,13 +372,3 @@ class GraphSLAM:
         if add_keyframe and self.db.add(t, pts):
             self.keyframes[t] = (pts, covs)
         return accepted
-
-
-def _register() -> None:
-    from slam2d.lab.registry import register_estimator
-
-    register_estimator("graph", GraphSLAMConfig, GraphSLAM,
-                       "online graph SLAM with place-recognition loop closures (sparse LM)")
-
-
-_register()

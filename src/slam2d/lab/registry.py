@@ -39,20 +39,28 @@ def register_estimator(name: str, config_cls: type, factory: Callable[[Any], Est
 register_estimator("dead-reckoning", DeadReckoningConfig, DeadReckoning, "odometry integration only (baseline)")
 
 
+#: the library's own back ends: name -> (module, config class, estimator class, description); imported on first use
+#: so that filters/ and graph/ never import the lab (dependencies point one way)
+_BUILTIN: dict[str, tuple[str, str, str, str]] = {
+    "ekf": ("slam2d.filters.ekf_slam", "EKFConfig", "EKFSLAM",
+            "EKF-SLAM: joint Gaussian over pose and landmarks, O(N^2) update"),
+    "fastslam": ("slam2d.filters.fastslam", "FastSLAMConfig", "FastSLAM",
+                 "FastSLAM 1.0: particles over paths, per-particle landmark EKFs, motion-model proposal"),
+    "fastslam2": ("slam2d.filters.fastslam", "FastSLAM2Config", "FastSLAM",
+                  "FastSLAM 2.0: FastSLAM with the proposal conditioned on the observations"),
+    "graph": ("slam2d.graph.online", "GraphSLAMConfig", "GraphSLAM",
+              "online graph SLAM with place-recognition loop closures (sparse LM)"),
+}
+
+
 def _load_builtin() -> None:
-    """Import the modules that register further estimators (kept lazy to avoid import cycles)."""
+    """Register the built-in back ends that are not registered yet (lazy: importing them costs time)."""
     import importlib
 
-    for mod in _BUILTIN_MODULES:
-        importlib.import_module(mod)
-
-
-#: modules whose import registers more estimators; each back end adds its own line here
-_BUILTIN_MODULES: list[str] = [
-    "slam2d.filters.ekf_slam",
-    "slam2d.filters.fastslam",
-    "slam2d.graph.online",
-]
+    for name, (module, cfg_name, cls_name, description) in _BUILTIN.items():
+        if name not in ESTIMATORS:
+            mod = importlib.import_module(module)
+            register_estimator(name, getattr(mod, cfg_name), getattr(mod, cls_name), description)
 
 
 def estimator_names() -> list[str]:
