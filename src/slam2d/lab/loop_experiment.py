@@ -56,7 +56,7 @@ def loop_closure_experiment(seed: int = 0) -> dict[str, Any]:
         "ate_closed_once_m": float(ate(after, truth).rmse_m),
         "ate_online_loop_closure_m": float(res_on.metrics["ate_rmse_m"]),
         "correction_at_quarter_path_m": [float(correction[i]) for i in idx],
-        "correction_distance_corr": float(np.corrcoef(travelled, correction)[0, 1]),
+        "correction_distance_corr": float(np.corrcoef(travelled, correction)[0, 1]) if closed else float("nan"),
     }
 
 
