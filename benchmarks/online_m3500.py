@@ -118,7 +118,8 @@ def main() -> int:
     times, final = run_slam2d(block, n, args.optimize_every, args.iterations)
     print(f"M3500 online, {n} poses, {block.size} edges; batch chi2 {batch:.4f}")
     print(f"{'system':<28} {'mean ms':>8} {'p99 ms':>8} {'max ms':>8} {'final chi2':>12} {'vs batch':>9}")
-    print(f"{'slam2d (every %d, %d it)' % (args.optimize_every, args.iterations):<28} {1e3 * times.mean():8.2f} "
+    label = f"slam2d (every {args.optimize_every}, {args.iterations} it)"
+    print(f"{label:<28} {1e3 * times.mean():8.2f} "
           f"{1e3 * np.percentile(times, 99):8.2f} {1e3 * times.max():8.2f} {final:12.4f} {final / batch - 1:+9.2%}")
     try:
         it, poses = run_isam2(block, n)
