@@ -139,9 +139,9 @@ class Session:
 
     # --- output -------------------------------------------------------------------------------------------------
     def hello(self) -> dict[str, Any]:
-        return {"type": "hello", "page": self.page, "title": self.title, "scalars": list(self.scalars),
-                "params": [p.describe() for p in self.params.values()],
-                "actions": [{"name": a, "label": lab} for a, lab in self.actions], **self.state()}
+        return {**self.state(), "type": "hello", "page": self.page, "title": self.title,
+                "scalars": list(self.scalars), "params": [p.describe() for p in self.params.values()],
+                "actions": [{"name": a, "label": lab} for a, lab in self.actions]}
 
     def state(self) -> dict[str, Any]:
         """What changes with commands but not every frame: values, notices, drawing bounds."""
