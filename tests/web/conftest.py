@@ -59,11 +59,18 @@ def stop_lab(proc: subprocess.Popen[bytes]) -> str:
 
 
 @pytest.fixture(scope="session")
-def lab_server() -> Iterator[str]:
+def lab_process() -> Iterator[tuple[str, subprocess.Popen[bytes]]]:
+    """A lab server for the whole test session: ("127.0.0.1:PORT", process). Its stderr must hold no traceback."""
     port = free_port()
     proc = start_lab(port)
-    yield f"http://127.0.0.1:{port}"
-    stop_lab(proc)
+    yield f"127.0.0.1:{port}", proc
+    err = stop_lab(proc)
+    assert "Traceback" not in err, err[-3000:]
+
+
+@pytest.fixture(scope="session")
+def lab_server(lab_process: tuple[str, subprocess.Popen[bytes]]) -> str:
+    return f"http://{lab_process[0]}"
 
 
 @pytest.fixture(scope="session")

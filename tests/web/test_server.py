@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import json
 import socket
 import urllib.request
@@ -14,16 +15,11 @@ import websockets
 
 from slam2d.web.frames import decode_frame
 from slam2d.web.pages import PAGE_BY_SLUG
-from tests.web.conftest import free_port, start_lab, stop_lab
 
 
-@pytest.fixture(scope="module")
-def server() -> Any:
-    port = free_port()
-    proc = start_lab(port)
-    yield f"127.0.0.1:{port}", proc
-    err = stop_lab(proc)
-    assert "Traceback" not in err, err[-3000:]
+@pytest.fixture
+def server(lab_process: Any) -> Any:
+    return lab_process
 
 
 async def _hello(ws: Any) -> dict[str, Any]:
@@ -52,7 +48,9 @@ async def _next_frame(ws: Any) -> tuple[int, dict[str, np.ndarray]]:
 
 
 def _run(coro: Any) -> Any:
-    return asyncio.run(coro)
+    # in a thread of its own: Playwright's sync API keeps an event loop running in the main thread
+    with concurrent.futures.ThreadPoolExecutor(1) as ex:
+        return ex.submit(asyncio.run, coro).result()
 
 
 def test_binds_loopback_only(server: Any) -> None:

@@ -72,7 +72,10 @@ def abs_correlation(cov: Array, limit: int = HEAT_MAX) -> Array:
 
 
 def observation_covariances(pose: Array, z: Array, r_obs: Array) -> Array:
-    """World-frame covariance of landmarks placed by each observation: ``G_z R G_z^T``. Shapes: (3,),(K,2) -> (K,2,2)."""
+    """World-frame covariance of the landmarks placed by observations: ``G_z R G_z^T``.
+
+    Shapes: pose (3,), z (K,2), r_obs (2,2) -> (K,2,2).
+    """
     if len(z) == 0:
         return np.zeros((0, 2, 2))
     _, gz = range_bearing_inverse_jacobians(np.broadcast_to(pose, (len(z), 3)), z)
