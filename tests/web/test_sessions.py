@@ -207,3 +207,27 @@ def test_particle_slider_reaches_the_estimator_config_when_it_has_one() -> None:
     s.apply({"type": "param", "name": "particles", "value": 7})
     cfg = s.est.config  # type: ignore[attr-defined]
     assert any(getattr(cfg, f) == 7 for f in overrides if f in {x.name for x in dataclasses.fields(cfg)})
+
+
+def test_break_it_toggles_damage_what_the_estimator_is_told() -> None:
+    s = PAGE_BY_SLUG["loop"].make(0)
+    assert isinstance(s, SimSession)
+    s.apply({"type": "param", "name": "paused", "value": True})
+    s.apply({"type": "param", "name": "few_landmarks", "value": True})
+    s.apply({"type": "param", "name": "wrong_association", "value": True})
+    told, seen = 0, 0
+    wrong = 0
+    for _ in range(40):
+        s.apply({"type": "action", "name": "step"})
+        assert s.last_step is not None
+        ids = s.last_step.observations.landmark_id
+        told += int((ids >= 0).sum())
+        # the kept fifth: every id the estimator hears belongs to a kept landmark or is a wrong-but-valid id
+        assert np.all(np.isin(ids[ids >= 0], s.sim.world.landmark_ids))
+        true_ids = s.sim.to_log().obs_id[s.sim.to_log().obs_step == s.sim.index]
+        seen += int((true_ids >= 0).sum())
+        kept_true = true_ids[np.isin(true_ids, s.kept_ids)]
+        assert len(kept_true) == int((ids >= 0).sum())
+        wrong += int((np.sort(ids[ids >= 0]) != np.sort(kept_true)).any())
+    assert 0 < told < seen  # only a fifth of the landmarks report
+    assert wrong > 0  # and some of their ids are wrong

@@ -183,6 +183,12 @@ def _sim_params(estimators: list[str], default_estimator: str, *, scenario: str,
               live=False, help="multiplies every odometry noise variance; 0 = perfect odometry"),
         Param("particles", "particles", "int", 50, lo=1, hi=2000, step=1, live=False),
         Param("obs_ellipses", "observation ellipses", "bool", False),
+        Param("loop_closure", "loop closure", "bool", True, live=False,
+              help="the estimator's loop_closure switch (only back ends that have one)"),
+        Param("wrong_association", "break it: 50% wrong landmark ids", "bool", False, live=False,
+              help="half of the reported landmark ids are replaced by another landmark's id"),
+        Param("few_landmarks", "break it: only 1/5 of landmarks", "bool", False, live=False,
+              help="only a random fifth of the landmarks ever report observations"),
         Param("paused", "paused", "bool", False),
     ]
     return [p for p in all_params if p.name in controls]
@@ -215,6 +221,8 @@ class SimSession(Session):
         self.values.setdefault("motion_noise", 1.0)
         self.values.setdefault("particles", 50)
         self.values.setdefault("obs_ellipses", False)
+        for k, v in (("loop_closure", True), ("wrong_association", False), ("few_landmarks", False)):
+            self.values.setdefault(k, v)
         self.heat = heat
         self.actions = (("reset", "reset"), ("step", "one step"))
         self.prefer = tuple(prefer)
@@ -241,7 +249,10 @@ class SimSession(Session):
 
     def _estimator_overrides(self, name: str) -> dict[str, Any]:
         fields = {f.name for f in dataclasses.fields(get_spec(name).config_cls)}
-        return {f: int(self.values["particles"]) for f in PARTICLE_FIELDS if f in fields}
+        out: dict[str, Any] = {f: int(self.values["particles"]) for f in PARTICLE_FIELDS if f in fields}
+        if "loop_closure" in self.params and "loop_closure" in fields:
+            out["loop_closure"] = bool(self.values["loop_closure"])
+        return out
 
     def _build(self) -> None:
         """(Re)start the simulator and estimator from the current values (same seed: same world and noise)."""
@@ -257,6 +268,10 @@ class SimSession(Session):
         self.est_path: list[Array] = [np.asarray(self.snap.pose, dtype=np.float64).copy()]
         self.seen: set[int] = set()
         self.last_step: Step | None = None
+        # break-it damage (same rules as slam2d.lab.breakit, applied step by step): its own random stream
+        self.breakit_rng = np.random.default_rng([int(self.values["seed"]), 0xB4EA])
+        ids = self.sim.world.landmark_ids
+        self.kept_ids = self.breakit_rng.choice(ids, size=max(1, round(0.2 * len(ids))), replace=False)
         self.est_ms = 0.0
         self._acc = 0.0
         self._ate_cache: tuple[int, float] = (-1, 0.0)
@@ -278,6 +293,10 @@ class SimSession(Session):
         if self.page == "fastslam" and not self._estimator_overrides(str(self.values["estimator"])):
             notes.append(f"particle-count slider: estimator '{self.values['estimator']}' has no particle-count "
                          f"setting (looked for {list(PARTICLE_FIELDS)}).")
+        est_fields = {f.name for f in dataclasses.fields(get_spec(str(self.values["estimator"])).config_cls)}
+        if "loop_closure" in self.params and "loop_closure" not in est_fields:
+            notes.append(f"loop-closure switch: estimator '{self.values['estimator']}' has no loop_closure setting, "
+                         "so the toggle changes nothing for it.")
         if self.error:
             notes.append(self.error)
         self.notices = notes
@@ -319,7 +338,8 @@ class SimSession(Session):
         if self.error:
             return
         v, w = self.command()
-        step = self.sim.step(v, w)
+        raw = self.sim.step(v, w)
+        step = self.damage(raw)
         t0 = time.perf_counter()
         try:
             self.est.step(step)
@@ -332,10 +352,25 @@ class SimSession(Session):
             return
         self.est_ms = 1e3 * (time.perf_counter() - t0)
         self.last_step = step
-        ids = step.observations.landmark_id
+        ids = raw.observations.landmark_id  # "seen" counts what the sensor saw, before any break-it damage
         self.seen.update(int(i) for i in np.unique(ids[ids >= 0]))
         self.true_path.append(self.sim.pose.copy())
         self.est_path.append(np.asarray(self.snap.pose, dtype=np.float64).copy())
+
+    def damage(self, step: Step) -> Step:
+        """The break-it toggles: what the estimator is told, not what the world does."""
+        obs = step.observations
+        if self.values["few_landmarks"]:
+            obs = obs.subset(np.isin(obs.landmark_id, self.kept_ids) | (obs.landmark_id < 0))
+        if self.values["wrong_association"] and len(obs):
+            ids = obs.landmark_id.copy()
+            world = np.sort(self.sim.world.landmark_ids)
+            pick = np.flatnonzero((ids >= 0) & (self.breakit_rng.random(len(ids)) < 0.5))
+            if len(world) >= 2 and len(pick):
+                pos = np.searchsorted(world, ids[pick])
+                ids[pick] = world[(pos + self.breakit_rng.integers(1, len(world), size=len(pick))) % len(world)]
+            obs = dataclasses.replace(obs, landmark_id=ids)
+        return step if obs is step.observations else dataclasses.replace(step, observations=obs)
 
     def advance(self, wall_dt_s: float) -> None:
         if self.values["paused"] or self.error:
