@@ -231,3 +231,19 @@ def test_break_it_toggles_damage_what_the_estimator_is_told() -> None:
         wrong += int((np.sort(ids[ids >= 0]) != np.sort(kept_true)).any())
     assert 0 < told < seen  # only a fifth of the landmarks report
     assert wrong > 0  # and some of their ids are wrong
+
+
+def test_an_estimator_that_cannot_start_falls_back_with_a_notice(monkeypatch: pytest.MonkeyPatch) -> None:
+    from slam2d.filters.dead_reckoning import DeadReckoningConfig
+    from slam2d.lab import registry
+
+    def factory(cfg: object) -> object:
+        raise RuntimeError("not ready")
+
+    monkeypatch.setitem(registry.ESTIMATORS, "broken",
+                        registry.EstimatorSpec("broken", DeadReckoningConfig, factory, "test"))  # type: ignore[arg-type]
+    s = SimSession(page="simulator", title="t", prefer=("broken",), controls=("estimator",))
+    assert s.values["estimator"] == "dead-reckoning"
+    assert any("'broken' could not be started" in n and "not ready" in n for n in s.notices)
+    s.advance(0.3)
+    assert s.sim.index >= 1

@@ -52,7 +52,10 @@ PAGES: tuple[Page, ...] = (
                                                           "motion_noise"))),
     Page("graph", 7, "Graph SLAM", "poses and landmarks as a factor graph, optimised together",
          lambda seed: SimSession(page="graph", title="graph SLAM", seed=seed, prefer=("graph",), drive="route",
-                                 controls=("estimator", "drive", "steps_per_s"))),
+                                 controls=("estimator", "drive", "steps_per_s"),
+                                 notes=("not available yet: the 'optimize' button animating Gauss-Newton iterations "
+                                        "and the sparsity view of the information matrix (they need the graph back "
+                                        "end's iteration and structure interface).",))),
     Page("loop", 8, "Loop closure", "a drifted loop snaps back when the robot recognises its start",
          lambda seed: SimSession(page="loop", title="loop closure", seed=seed, prefer=("graph",), scenario="loop",
                                  drive="route", controls=("estimator", "motion_noise", "steps_per_s", "loop_closure",

@@ -203,7 +203,7 @@ class SimSession(Session):
 
     def __init__(self, *, page: str, title: str, seed: int = 0, prefer: Sequence[str] = (), scenario: str = "room",
                  drive: str = "keys", controls: Sequence[str] = (), speed: float = 10.0, heat: bool = False,
-                 need_note: str = "") -> None:
+                 need_note: str = "", notes: Sequence[str] = ()) -> None:
         self.page, self.title = page, title
         names = estimator_names()
         wanted = [n for n in prefer if n in names]
@@ -227,6 +227,7 @@ class SimSession(Session):
         self.actions = (("reset", "reset"), ("step", "one step"))
         self.prefer = tuple(prefer)
         self.need_note = need_note
+        self.static_notes = list(notes)
         self.error: str | None = None
         self._build()
 
@@ -258,10 +259,19 @@ class SimSession(Session):
         """(Re)start the simulator and estimator from the current values (same seed: same world and noise)."""
         self.sim = Simulator(self._scenario_config(), seed=int(self.values["seed"]))
         name = str(self.values["estimator"])
-        self.est: Estimator = make_estimator(name, self._estimator_overrides(name) or None,
-                                             log_metadata=self.sim.metadata())
-        self.est.reset(self.sim.initial_pose, rng=self.sim.rng["estimator"])
-        self.snap: Estimate = self.est.estimate()
+        self.start_error: str | None = None
+        try:
+            self.est: Estimator = make_estimator(name, self._estimator_overrides(name) or None,
+                                                 log_metadata=self.sim.metadata())
+            self.est.reset(self.sim.initial_pose, rng=self.sim.rng["estimator"])
+            self.snap: Estimate = self.est.estimate()
+        except Exception as e:  # a back end that cannot start must not break the page: say so, use the baseline
+            self.start_error = (f"estimator '{name}' could not be started ({type(e).__name__}: {e}); "
+                                "showing 'dead-reckoning' instead.")
+            self.values["estimator"] = "dead-reckoning"
+            self.est = make_estimator("dead-reckoning", log_metadata=self.sim.metadata())
+            self.est.reset(self.sim.initial_pose, rng=self.sim.rng["estimator"])
+            self.snap = self.est.estimate()
         self.explorer = AutoExplorer(float(self.sim.config.speed_mps or 1.0), self.sim.rng["driver"])
         self.route = WaypointFollower(self.sim.waypoints, float(self.sim.config.speed_mps or 1.0))
         self.true_path: list[Array] = [self.sim.pose.copy()]
@@ -297,6 +307,9 @@ class SimSession(Session):
         if "loop_closure" in self.params and "loop_closure" not in est_fields:
             notes.append(f"loop-closure switch: estimator '{self.values['estimator']}' has no loop_closure setting, "
                          "so the toggle changes nothing for it.")
+        notes.extend(self.static_notes)
+        if self.start_error:
+            notes.append(self.start_error)
         if self.error:
             notes.append(self.error)
         self.notices = notes
@@ -574,11 +587,18 @@ class AssociationSession(Session):
 
         cands = self.candidates()
         method = str(self.values["method"])
-        if method == "known":
-            res = associate_known(self.obs, cands)
-        else:
-            assert self._associate is not None
-            res = self._associate(self.obs, cands, AssociationConfig(method=method))  # type: ignore[arg-type]
+        self.notices = [n for n in self.notices if not n.startswith("association method")]
+        try:
+            if method == "known":
+                res = associate_known(self.obs, cands)
+            else:
+                assert self._associate is not None
+                res = self._associate(self.obs, cands, AssociationConfig(method=method))  # type: ignore[arg-type]
+        except Exception as e:  # show the failure on the page instead of losing the session
+            self.notices.append(f"association method {method!r} failed: {type(e).__name__}: {e}")
+            from slam2d.association import CLUTTER, AssociationResult
+
+            res = AssociationResult(np.full(len(self.obs), CLUTTER, dtype=np.int64), np.full(len(self.obs), np.nan))
         self.result = res
         self.cands = cands
 
