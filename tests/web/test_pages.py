@@ -149,7 +149,12 @@ def test_ekf_state_dimension_counts_landmarks(page: Any, lab_server: str, artifa
     set_control(page, "steps_per_s", 30)
     page.wait_for_function("window.slamLab.counters.landmarks_mapped >= 5", timeout=20_000)
     c = page.evaluate("window.slamLab.counters")
-    assert c["state_dim"] == 3 + 2 * c["landmarks_mapped"]
+    # the state holds confirmed and tentative landmarks, 2 numbers each, after the 3 pose numbers
+    tentative = c["landmarks_tentative"]
+    assert tentative == tentative, "ekf reports its tentative landmarks (extras['tentative_landmarks'])"
+    assert c["state_dim"] == 3 + 2 * (c["landmarks_mapped"] + tentative)
+    assert page.evaluate("window.slamLab.sections.ECOV[0]") == c["landmarks_mapped"]
+    assert page.evaluate("window.slamLab.sections.HEAT !== undefined")
     page.screenshot(path=str(artifacts / "ekf-running.png"))
     assert errors == []
 

@@ -198,8 +198,9 @@ class SimSession(Session):
     """A live :class:`Simulator` plus a registered estimator, driven by keys, auto-explore or the scenario route."""
 
     page = "sim"
-    scalars = ("step", "time_s", "landmarks_seen", "landmarks_mapped", "state_dim", "ate_rmse_m", "pose_error_m",
-               "n_eff", "particles", "est_ms", "true_x", "true_y", "true_theta")
+    scalars = ("step", "time_s", "landmarks_seen", "landmarks_mapped", "landmarks_tentative", "state_dim",
+               "ate_rmse_m", "pose_error_m", "n_eff", "particles", "resamples", "est_ms", "true_x", "true_y",
+               "true_theta")
 
     def __init__(self, *, page: str, title: str, seed: int = 0, prefer: Sequence[str] = (), scenario: str = "room",
                  drive: str = "keys", controls: Sequence[str] = (), speed: float = 10.0, heat: bool = False,
@@ -251,6 +252,8 @@ class SimSession(Session):
     def _estimator_overrides(self, name: str) -> dict[str, Any]:
         fields = {f.name for f in dataclasses.fields(get_spec(name).config_cls)}
         out: dict[str, Any] = {f: int(self.values["particles"]) for f in PARTICLE_FIELDS if f in fields}
+        if self.heat and "snapshot_full_cov" in fields:  # the EKF copies its full P only when asked (O(N^2))
+            out["snapshot_full_cov"] = True
         if "loop_closure" in self.params and "loop_closure" in fields:
             out["loop_closure"] = bool(self.values["loop_closure"])
         return out
@@ -283,6 +286,7 @@ class SimSession(Session):
         ids = self.sim.world.landmark_ids
         self.kept_ids = self.breakit_rng.choice(ids, size=max(1, round(0.2 * len(ids))), replace=False)
         self.est_ms = 0.0
+        self.resamples = 0
         self._acc = 0.0
         self._ate_cache: tuple[int, float] = (-1, 0.0)
         self._heat_cache: tuple[int, Array | None] = (-1, None)
@@ -364,6 +368,7 @@ class SimSession(Session):
             self._update_notices()
             return
         self.est_ms = 1e3 * (time.perf_counter() - t0)
+        self.resamples += bool(self.snap.extras.get("resampled", False))
         self.last_step = step
         ids = raw.observations.landmark_id  # "seen" counts what the sensor saw, before any break-it damage
         self.seen.update(int(i) for i in np.unique(ids[ids >= 0]))
@@ -419,12 +424,15 @@ class SimSession(Session):
         sd = snap.extras.get("state_dim")
         parts = snap.extras.get("particles")
         n_eff = snap.extras.get("n_eff")
+        tent = snap.extras.get("tentative_landmarks")
         pose = self.sim.pose
         return {
             "step": float(self.sim.index),
             "time_s": float(self.sim.time_s),
             "landmarks_seen": float(len(self.seen)),
             "landmarks_mapped": float(len(snap.landmarks)),
+            "landmarks_tentative": float(len(tent)) if tent is not None else float("nan"),
+            "resamples": float(self.resamples),
             "state_dim": float(sd) if sd is not None else float("nan"),
             "ate_rmse_m": self.ate_rmse(),
             "pose_error_m": float(np.hypot(*(np.asarray(snap.pose)[:2] - pose[:2]))),
@@ -578,8 +586,10 @@ class AssociationSession(Session):
         hp, _ = range_bearing_jacobians(np.broadcast_to(self.belief, (len(near), 3)), self.landmarks[near])
         r = self.sensor.covariance
         s = hp @ self.pose_cov @ np.swapaxes(hp, -1, -2) + r
+        s = 0.5 * (s + np.swapaxes(s, -1, -2))
         hstack = hp.reshape(-1, 3)
         s_joint = hstack @ self.pose_cov @ hstack.T + np.kron(np.eye(len(near)), r)
+        s_joint = 0.5 * (s_joint + s_joint.T)
         return Candidates(near.astype(np.int64), zp[near], s, s_joint)
 
     def _associate_now(self) -> None:
@@ -593,7 +603,8 @@ class AssociationSession(Session):
                 res = associate_known(self.obs, cands)
             else:
                 assert self._associate is not None
-                res = self._associate(self.obs, cands, AssociationConfig(method=method))  # type: ignore[arg-type]
+                res = self._associate(self.obs, cands, AssociationConfig(method=method),  # type: ignore[arg-type]
+                                      rng=self.rng)
         except Exception as e:  # show the failure on the page instead of losing the session
             self.notices.append(f"association method {method!r} failed: {type(e).__name__}: {e}")
             from slam2d.association import CLUTTER, AssociationResult
