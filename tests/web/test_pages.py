@@ -148,13 +148,15 @@ def test_ekf_state_dimension_counts_landmarks(page: Any, lab_server: str, artifa
     page.wait_for_function(FRAMES, timeout=15_000)
     set_control(page, "steps_per_s", 30)
     page.wait_for_function("window.slamLab.counters.landmarks_mapped >= 5", timeout=20_000)
-    c = page.evaluate("window.slamLab.counters")
+    # counters and sections of one and the same frame
+    c, sections = page.evaluate("[window.slamLab.counters, window.slamLab.sections]")
     # the state holds confirmed and tentative landmarks, 2 numbers each, after the 3 pose numbers
     tentative = c["landmarks_tentative"]
     assert tentative == tentative, "ekf reports its tentative landmarks (extras['tentative_landmarks'])"
     assert c["state_dim"] == 3 + 2 * (c["landmarks_mapped"] + tentative)
-    assert page.evaluate("window.slamLab.sections.ECOV[0]") == c["landmarks_mapped"]
-    assert page.evaluate("window.slamLab.sections.HEAT !== undefined")
+    assert sections["ECOV"][0] == sections["ELMK"][0] == c["landmarks_mapped"]
+    n = min(int(c["state_dim"]), 96)  # the heat map is block-averaged beyond 96 x 96
+    assert sections["HEAT"] == [n, n]
     page.screenshot(path=str(artifacts / "ekf-running.png"))
     assert errors == []
 
@@ -178,4 +180,21 @@ def test_association_page_reports_precision(page: Any, lab_server: str) -> None:
         if page.evaluate("window.slamLab.counters.observations") != before:
             break
     assert page.evaluate("window.slamLab.counters.observations") != before
+    assert errors == []
+
+
+def test_features_threshold_slider_changes_the_corner_count(page: Any, lab_server: str, artifacts: Path) -> None:
+    errors = open_page(page, f"{lab_server}/lab/features?hz=10")
+    page.wait_for_function(FRAMES, timeout=15_000)
+    if page.evaluate("window.slamLab.sections.FEAT === undefined"):
+        assert any(n.startswith("not available yet") for n in page.evaluate("window.slamLab.notices"))
+        pytest.skip("corner detection back end not merged yet")
+    set_control(page, "threshold_rel", 0.01)
+    page.wait_for_function("window.slamLab.values.threshold_rel === 0.01", timeout=5000)
+    page.wait_for_timeout(300)
+    low = page.evaluate("window.slamLab.counters.corners_found")
+    set_control(page, "threshold_rel", 0.9)
+    page.wait_for_function("window.slamLab.values.threshold_rel === 0.9", timeout=5000)
+    page.wait_for_function(f"window.slamLab.counters.corners_found < {low}", timeout=5000)
+    page.screenshot(path=str(artifacts / "features-high-threshold.png"))
     assert errors == []

@@ -39,6 +39,14 @@ def associate_function() -> Callable[..., Any] | None:
     return optional_attr("slam2d.association", "associate")
 
 
+def optional_module(module: str) -> Any | None:
+    """The module if it (and everything it needs) imports, else None."""
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        return None
+
+
 def module_exists(module: str) -> bool:
     try:
         importlib.import_module(module)

@@ -54,6 +54,10 @@ TAGS: dict[str, tuple[str, str]] = {
     "MTCH": ("(K,5)", "association lines: observation x,y, landmark x,y, 1 correct / 0 wrong"),
     "NEWO": ("(K,2)", "observations declared new or clutter by the association"),
     "SCAN": ("(P,2)", "lidar points in the world"),
+    "GRID": ("(rows,cols)", "grid image in [0,1] (occupancy probability or intensity); row 0 = lowest y"),
+    "GRDM": ("(1,3)", "grid placement: origin x, origin y (m) of cell (0,0)'s corner, cell size (m)"),
+    "FEAT": ("(K,2)", "detected features in the world"),
+    "TCOR": ("(C,2)", "true corners in the world"),
 }
 
 

@@ -9,8 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from slam2d.web.backends import module_exists
-from slam2d.web.sessions import AssociationSession, MapsSession, NoticeSession, Session, SimSession
+from slam2d.web.sessions import AssociationSession, FeaturesSession, MapsSession, Session, SimSession
 
 
 @dataclass(frozen=True)
@@ -20,12 +19,6 @@ class Page:
     title: str
     summary: str
     make: Callable[[int], Session]
-
-
-def _features(seed: int) -> Session:
-    what = ("corner detection (slam2d.frontend.features)" if not module_exists("slam2d.frontend.features")
-            else "the corner-detection view (slam2d.frontend.features exists; this page is not wired to it yet)")
-    return NoticeSession(page="features", title="feature extraction", missing=what, seed=seed)
 
 
 PAGES: tuple[Page, ...] = (
@@ -39,7 +32,8 @@ PAGES: tuple[Page, ...] = (
     Page("drift", 2, "Pose and odometry drift", "dead reckoning drifts away from the truth; ATE measures how far",
          lambda seed: SimSession(page="drift", title="pose and odometry drift", seed=seed, drive="route",
                                  controls=("motion_noise", "drive", "steps_per_s"), speed=20.0)),
-    Page("features", 3, "Feature extraction", "corners on a room image with a threshold slider", _features),
+    Page("features", 3, "Feature extraction", "corners on a room image with a threshold slider",
+         lambda seed: FeaturesSession(seed)),
     Page("association", 4, "Data association", "which observation belongs to which landmark, and when it goes wrong",
          lambda seed: AssociationSession(seed)),
     Page("ekf", 5, "EKF-SLAM", "one Gaussian over pose and map: growing state, ellipses, correlations",

@@ -26,7 +26,7 @@ from slam2d.models.sensors import SensorConfig, range_bearing_inverse, range_bea
 from slam2d.sim.scenarios import SCENARIOS, ScenarioConfig
 from slam2d.sim.simulator import Simulator
 from slam2d.sim.trajectory import AutoExplorer, WaypointFollower
-from slam2d.web.backends import ESTIMATOR_LABELS, module_exists
+from slam2d.web.backends import ESTIMATOR_LABELS, optional_module
 from slam2d.web.params import CommandError, Param
 
 Array = NDArray[np.float64]
@@ -677,19 +677,26 @@ class MapsSession(Session):
         self.route = WaypointFollower(self.sim.waypoints, float(self.sim.config.speed_mps or 1.0))
         self.points = np.zeros((0, 2))
         self._acc = 0.0
+        self.grid: Any = None
+        self.grid_error: str | None = None
+        occ = optional_module("slam2d.maps.occupancy")
+        if occ is not None:
+            try:
+                self.grid = occ.OccupancyGrid(self.sim.world.bounds, occ.OccupancyConfig(resolution_m=0.2))
+            except Exception as e:  # an interface that changed: say so on the page
+                self.grid_error = f"occupancy grid could not be built: {type(e).__name__}: {e}"
         self._update_notices()
 
     def _update_notices(self) -> None:
         layer = self.values["layer"]
         self.notices = []
-        if layer == "occupancy":
-            self.notices.append("not available yet: occupancy grid (slam2d.maps.occupancy)" if not module_exists(
-                "slam2d.maps.occupancy") else "not available yet in the lab: the occupancy grid layer "
-                "(slam2d.maps.occupancy exists; this page is not wired to it yet)")
+        if layer == "occupancy" and self.grid is None:
+            self.notices.append(self.grid_error or "not available yet: occupancy grid (slam2d.maps.occupancy)")
         if layer == "topology":
-            self.notices.append("not available yet: topological map (slam2d.maps.topology)" if not module_exists(
-                "slam2d.maps.topology") else "not available yet in the lab: the topological map layer "
-                "(slam2d.maps.topology exists; this page is not wired to it yet)")
+            self.notices.append("not available yet: topological map (slam2d.maps.topology)"
+                                if optional_module("slam2d.maps.topology") is None else
+                                "not available yet in the lab: the topological map layer (slam2d.maps.topology "
+                                "exists; this page is not wired to it yet)")
 
     def bounds(self) -> tuple[float, float, float, float]:
         return tuple(float(b) for b in self.sim.world.bounds)  # type: ignore[return-value]
@@ -718,6 +725,13 @@ class MapsSession(Session):
                 merged = np.vstack([self.points, pts])
                 _, keep = np.unique(np.round(merged / 0.05).astype(np.int64), axis=0, return_index=True)
                 self.points = merged[np.sort(keep)]
+                if self.grid is not None:
+                    try:
+                        self.grid.update(self.sim.pose, step.scan.ranges_m, step.scan.angles_rad,
+                                         step.scan.max_range_m)
+                    except Exception as e:
+                        self.grid, self.grid_error = None, f"occupancy grid update failed: {type(e).__name__}: {e}"
+                        self._update_notices()
 
     def sections(self) -> Sections:
         nums = {"step": float(self.sim.index), "landmarks": float(len(self.sim.world.landmarks)),
@@ -728,6 +742,9 @@ class MapsSession(Session):
             out.append(("TLMK", self.sim.world.landmarks))
         elif self.values["layer"] == "points":
             out.append(("SCAN", self.points))
+        elif self.values["layer"] == "occupancy" and self.grid is not None:
+            out.append(("GRID", self.grid.probability()))
+            out.append(("GRDM", np.array([*self.grid.origin, self.grid.resolution])))
         return out
 
 
@@ -748,3 +765,94 @@ class NoticeSession(Session):
     def sections(self) -> Sections:
         return [("NUMS", np.zeros(0)), ("WALL", self.sim.world.walls), ("TLMK", self.sim.world.landmarks),
                 ("TPOS", self.sim.pose)]
+
+
+class FeaturesSession(Session):
+    """Harris corners on an image of the room (its walls rasterised into a grid), against the true wall corners.
+
+    Uses ``slam2d.frontend.features`` (detector, pixel/world conversion, precision/recall) and
+    ``slam2d.maps.occupancy`` (rasterising the walls); until both exist the page says so.
+    """
+
+    page = "features"
+    title = "feature extraction"
+    scalars = ("corners_found", "true_corners", "precision", "recall")
+
+    def __init__(self, seed: int = 0) -> None:
+        params = [
+            Param("threshold_rel", "threshold (x strongest response)", "float", 0.1, lo=0.0, hi=1.0, step=0.01),
+            Param("sigma_px", "window sigma (pixels)", "float", 1.0, lo=0.5, hi=4.0, step=0.1),
+            Param("image_noise", "image noise (std)", "float", 0.0, lo=0.0, hi=0.5, step=0.01),
+            Param("seed", "seed", "int", 0, lo=0, hi=2**31 - 1, step=1),
+        ]
+        super().__init__(params, seed)
+        self.actions = (("renoise", "new noise"),)
+        self.sim = Simulator(ScenarioConfig(name="room", lidar=LidarConfig(enabled=False)), seed=seed)
+        self.feat = optional_module("slam2d.frontend.features")
+        self.occ = optional_module("slam2d.maps.occupancy")
+        walls = self.sim.world.walls
+        # a corner is a wall endpoint; each appears twice (two walls meet there)
+        self.truth = np.unique(np.round(np.vstack([walls[:, :2], walls[:, 2:]]), 6), axis=0)
+        self.detected = np.zeros((0, 2))
+        self.score: Any = None
+        self.rng = np.random.default_rng(int(self.values["seed"]))
+        self.base: Array | None = None
+        if self.feat is None or self.occ is None:
+            missing = [m for m, mod in (("slam2d.frontend.features", self.feat), ("slam2d.maps.occupancy", self.occ))
+                       if mod is None]
+            self.notices = [f"not available yet: corner detection on a room image (needs {' and '.join(missing)})"]
+            return
+        try:
+            self.grid = self.occ.OccupancyGrid(self.sim.world.bounds, self.occ.OccupancyConfig(resolution_m=0.1))
+            self.base = self.occ.rasterize_segments(self.grid, walls).astype(np.float64)
+        except Exception as e:
+            self.notices = [f"room image could not be built: {type(e).__name__}: {e}"]
+            return
+        self._renoise()
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        return tuple(float(b) for b in self.sim.world.bounds)  # type: ignore[return-value]
+
+    def _renoise(self) -> None:
+        if self.base is None:
+            return
+        self.image = np.clip(self.base + self.rng.standard_normal(self.base.shape) * float(self.values["image_noise"]),
+                             0.0, 1.0)
+        self._detect()
+
+    def _detect(self) -> None:
+        assert self.feat is not None
+        self.notices = [n for n in self.notices if not n.startswith("corner detection failed")]
+        try:
+            cfg = self.feat.HarrisConfig(threshold_rel=float(self.values["threshold_rel"]),
+                                         sigma_px=float(self.values["sigma_px"]))
+            rc = self.feat.harris_corners(self.image, cfg)
+            self.detected = self.feat.pixels_to_world(self.grid, rc)
+            self.score = self.feat.match_points(self.detected, self.truth, tolerance=0.3)
+        except Exception as e:
+            self.notices.append(f"corner detection failed: {type(e).__name__}: {e}")
+            self.detected, self.score = np.zeros((0, 2)), None
+
+    def on_param(self, name: str, value: Any, old: Any) -> None:
+        if self.base is None:
+            return
+        if name == "seed":
+            self.rng = np.random.default_rng(int(value))
+        if name in ("seed", "image_noise"):
+            self._renoise()
+        else:
+            self._detect()
+
+    def on_action(self, name: str) -> None:
+        self._renoise()
+
+    def sections(self) -> Sections:
+        sc = self.score
+        nums = [float(len(self.detected)), float(len(self.truth)),
+                float(sc.precision) if sc is not None else float("nan"),
+                float(sc.recall) if sc is not None else float("nan")]
+        out: Sections = [("NUMS", np.array(nums)), ("WALL", self.sim.world.walls)]
+        if self.base is not None:
+            out += [("GRID", self.image), ("GRDM", np.array([*self.grid.origin, self.grid.resolution])),
+                    ("TCOR", self.truth), ("FEAT", self.detected)]
+        return out

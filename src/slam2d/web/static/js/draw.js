@@ -5,7 +5,7 @@ export const COLORS = {
   wall: '#555', trueLm: '#222', truePath: '#2a9d3a', robot: '#2a9d3a', estPath: '#1f5fbf', estRobot: '#1f5fbf',
   estLm: '#d62828', ellipse: 'rgba(31,95,191,0.75)', obs: 'rgba(240,140,0,0.55)', obsEllipse: 'rgba(240,140,0,0.8)',
   particle: 'rgba(140,60,180,0.55)', good: '#2a9d3a', bad: '#d62828', newObs: '#888', scan: '#444',
-  graphEdge: 'rgba(31,95,191,0.35)', graphNode: '#1f5fbf',
+  graphEdge: 'rgba(31,95,191,0.35)', graphNode: '#1f5fbf', feature: '#d62828', trueCorner: '#2a9d3a',
 };
 
 export class WorldView {
@@ -140,6 +140,25 @@ export class WorldView {
     }
   }
 }
+
+// a grid image (values in [0,1], row 0 = lowest y) placed in the world: meta = [origin x, origin y, cell size]
+WorldView.prototype.grid = function grid(g, meta) {
+  if (!g || !meta || g.rows === 0) return;
+  const rows = g.rows, cols = g.cols, d = g.data, img = new ImageData(cols, rows);
+  for (let r = 0; r < rows; r++) {
+    const dst = (rows - 1 - r) * cols; // flip: canvas rows grow downwards, world y grows upwards
+    for (let c = 0; c < cols; c++) {
+      const v = 255 - Math.round(255 * Math.min(Math.max(d[r * cols + c], 0), 1)), k = 4 * (dst + c);
+      img.data[k] = v; img.data[k + 1] = v; img.data[k + 2] = v; img.data[k + 3] = 255;
+    }
+  }
+  const off = new OffscreenCanvas(cols, rows);
+  off.getContext('2d').putImageData(img, 0, 0);
+  const [x0, y0, res] = meta.data;
+  const c = this.ctx;
+  c.imageSmoothingEnabled = false;
+  c.drawImage(off, this.px(x0), this.py(y0 + rows * res), cols * res * this.scale, rows * res * this.scale);
+};
 
 // |correlation| matrix as an image: white 0 .. dark blue 1; drawn through a small offscreen ImageData
 export function drawHeat(canvas, s) {

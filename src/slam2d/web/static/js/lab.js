@@ -175,7 +175,8 @@ function draw() {
   const t0 = performance.now();
   const s = latest.sections;
   view.clear();
-  view.segments(s.WALL, COLORS.wall, 2);
+  view.grid(s.GRID, s.GRDM);
+  if (!s.GRID) view.segments(s.WALL, COLORS.wall, 2);
   view.dots(s.SCAN, COLORS.scan, 2);
   view.segments(s.GEDG, COLORS.graphEdge, 1);
   view.path(s.TPTH, COLORS.truePath, 2);
@@ -189,6 +190,8 @@ function draw() {
   view.dots(s.PART, COLORS.particle, 3, 3);
   view.matches(s.MTCH);
   view.dots(s.NEWO, COLORS.newObs, 6);
+  view.dots(s.TCOR, COLORS.trueCorner, 9);
+  view.crosses(s.FEAT, COLORS.feature, 5);
   if (s.PCOV && s.EPOS) view.ellipses(s.EPOS, s.PCOV, COLORS.ellipse, 3);
   view.robot(s.TPOS, COLORS.robot);
   view.robot(s.EPOS, COLORS.estRobot, 0.35);
