@@ -198,3 +198,18 @@ def test_features_threshold_slider_changes_the_corner_count(page: Any, lab_serve
     page.wait_for_function(f"window.slamLab.counters.corners_found < {low}", timeout=5000)
     page.screenshot(path=str(artifacts / "features-high-threshold.png"))
     assert errors == []
+
+
+def test_fastslam_particle_slider_sets_the_particle_count(page: Any, lab_server: str) -> None:
+    if "fastslam" not in estimator_names():
+        pytest.skip("estimator 'fastslam' is not registered yet (FastSLAM has not landed)")
+    errors = open_page(page, f"{lab_server}/lab/fastslam?hz=20&seed=2")
+    page.wait_for_function(FRAMES, timeout=15_000)
+    page.locator("#ctl-estimator").select_option("fastslam")
+    set_control(page, "particles", 17)
+    page.wait_for_function("window.slamLab.values.particles === 17 && window.slamLab.counters.particles === 17 && "
+                           "window.slamLab.sections.PART && window.slamLab.sections.PART[0] === 17", timeout=10_000)
+    page.wait_for_function("window.slamLab.counters.step > 3", timeout=10_000)
+    n_eff = page.evaluate("window.slamLab.counters.n_eff")
+    assert 1.0 <= n_eff <= 17.0 + 1e-6  # N_eff = 1 / sum w^2 lies in [1, M]
+    assert errors == []
