@@ -72,6 +72,9 @@ class Connection:
     def __init__(self, ws: WebSocket, session: Session, hz: int) -> None:
         self.ws, self.session, self.hz = ws, session, hz
         self.lock = asyncio.Lock()  # one writer at a time on the socket
+        # the session is stepped in a worker thread (so one slow estimator does not stall the other tabs);
+        # commands wait for the step in progress, so a session is never changed while it steps
+        self.session_lock = asyncio.Lock()
         self.closed = False
 
     async def send_json(self, obj: dict[str, Any]) -> None:
@@ -86,12 +89,17 @@ class Connection:
                 return
             try:
                 cmd = parse_command(msg.get("text") if msg.get("text") is not None else msg.get("bytes"))
-                reply = self.session.apply(cmd)
+                async with self.session_lock:
+                    reply = self.session.apply(cmd)
             except CommandError as e:
                 await self.send_json({"type": "error", "message": str(e)})
                 continue
             if reply is not None:
                 await self.send_json(reply)
+
+    def _tick(self, dt: float, seq: int) -> bytes:
+        self.session.advance(dt)
+        return encode_frame(seq, self.session.sections())
 
     async def sender(self) -> None:
         period = 1.0 / self.hz
@@ -100,9 +108,9 @@ class Connection:
         nxt = last
         while not self.closed:
             now = time.perf_counter()
-            self.session.advance(min(now - last, 0.5))
+            async with self.session_lock:
+                frame = await asyncio.to_thread(self._tick, min(now - last, 0.5), seq)
             last = now
-            frame = encode_frame(seq, self.session.sections())
             async with self.lock:
                 await self.ws.send_bytes(frame)
             seq += 1

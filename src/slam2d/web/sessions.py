@@ -38,6 +38,8 @@ DRIVE_KEYS = ("ArrowUp", "ArrowDown", "ArrowLeft", "ArrowRight")
 PARTICLE_FIELDS = ("num_particles", "n_particles", "particles")
 MAX_PATH_POINTS = 1500
 HEAT_MAX = 96
+#: wall time one frame may spend stepping the simulation and estimator before the frame goes out anyway
+STEP_BUDGET_S = 0.05
 
 
 def _downsample(points: Array, limit: int = MAX_PATH_POINTS) -> Array:
@@ -400,8 +402,13 @@ class SimSession(Session):
             n, self._acc = 8, 0.0
         else:
             self._acc -= n
-        for _ in range(n):
+        t0 = time.perf_counter()
+        for i in range(n):
             self._step_once()
+            if time.perf_counter() - t0 > STEP_BUDGET_S and i + 1 < n:
+                # a slow back end: send a frame now and drop the rest (the page stays live; sim time lags)
+                self._acc = 0.0
+                break
 
     # --- numbers ------------------------------------------------------------------------------------------------
     def trajectory(self) -> Array:
