@@ -76,6 +76,8 @@ def main() -> int:
                 send("paused", False)
                 page.wait_for_function(f"window.slamLab.counters.landmarks_mapped >= {LANDMARKS}", timeout=120_000)
                 send("paused", True)
+                # the pause is applied after the EKF step in progress (seconds with 500 landmarks in view)
+                page.wait_for_function("window.slamLab.values.paused === true", timeout=120_000)
                 tag = "ECOV"
             else:
                 send("obs_ellipses", True)
