@@ -9,7 +9,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from slam2d.web.sessions import AssociationSession, FeaturesSession, MapsSession, Session, SimSession
+from slam2d.web.backends import optional_module
+from slam2d.web.sessions import AssociationSession, FeaturesSession, GraphSession, MapsSession, Session, SimSession
 
 
 @dataclass(frozen=True)
@@ -45,11 +46,11 @@ PAGES: tuple[Page, ...] = (
                                  drive="route", controls=("estimator", "particles", "drive", "steps_per_s",
                                                           "motion_noise"))),
     Page("graph", 7, "Graph SLAM", "poses and landmarks as a factor graph, optimised together",
-         lambda seed: SimSession(page="graph", title="graph SLAM", seed=seed, prefer=("graph",), drive="route",
-                                 controls=("estimator", "drive", "steps_per_s"),
-                                 notes=("not available yet: the 'optimize' button animating Gauss-Newton iterations "
-                                        "and the sparsity view of the information matrix (they need the graph back "
-                                        "end's iteration and structure interface).",))),
+         lambda seed: GraphSession(seed) if optional_module("slam2d.graph") is not None else SimSession(
+             page="graph", title="graph SLAM", seed=seed, prefer=("graph",), drive="route",
+             controls=("estimator", "drive", "steps_per_s"),
+             notes=("not available yet: the 'optimize' button animating Gauss-Newton iterations and the sparsity "
+                    "view of the information matrix (they need the graph back end, slam2d.graph).",))),
     Page("loop", 8, "Loop closure", "a drifted loop snaps back when the robot recognises its start",
          lambda seed: SimSession(page="loop", title="loop closure", seed=seed, prefer=("graph",), scenario="loop",
                                  drive="route", controls=("estimator", "motion_noise", "steps_per_s", "loop_closure",

@@ -21,7 +21,7 @@ from slam2d.geometry import se2
 from slam2d.lab.registry import estimator_names, get_spec, make_estimator
 from slam2d.log import Step
 from slam2d.models.lidar import LidarConfig, scan_to_points
-from slam2d.models.motion import MotionNoise
+from slam2d.models.motion import MotionNoise, odometry_covariance
 from slam2d.models.sensors import SensorConfig, range_bearing_inverse, range_bearing_inverse_jacobians
 from slam2d.sim.scenarios import SCENARIOS, ScenarioConfig
 from slam2d.sim.simulator import Simulator
@@ -862,4 +862,181 @@ class FeaturesSession(Session):
         if self.base is not None:
             out += [("GRID", self.image), ("GRDM", np.array([*self.grid.origin, self.grid.resolution])),
                     ("TCOR", self.truth), ("FEAT", self.detected)]
+        return out
+
+
+def block_average(mat: Array, limit: int = HEAT_MAX) -> Array:
+    """Average ``mat`` (n,n) over an at most ``limit`` x ``limit`` grid of blocks (identity when n <= limit)."""
+    m = np.asarray(mat, dtype=np.float64)
+    n = m.shape[0]
+    if n <= limit:
+        return m
+    edges = np.linspace(0, n, limit + 1).astype(np.int64)
+    cs = np.zeros((n + 1, n + 1))
+    cs[1:, 1:] = m.cumsum(0).cumsum(1)
+    s = cs[edges[1:]][:, edges[1:]] - cs[edges[:-1]][:, edges[1:]] - cs[edges[1:]][:, edges[:-1]] + \
+        cs[edges[:-1]][:, edges[:-1]]
+    sizes = np.diff(edges)
+    return s / (sizes[:, None] * sizes[None, :])
+
+
+class GraphSession(Session):
+    """Batch graph SLAM on the drive so far: build the factor graph, then watch Gauss-Newton iterate.
+
+    The robot drives the room's route (odometry and known-id range-bearing observations are recorded); "optimize"
+    builds a :class:`slam2d.graph.FactorGraph` (odometry ``between`` factors, ``range_bearing`` factors), starts from
+    the dead-reckoned poses and first-sighting landmarks, and runs one Gauss-Newton iteration per animation tick.
+    """
+
+    page = "graph"
+    title = "graph SLAM"
+    scalars = ("poses", "landmarks", "factors", "iteration", "cost", "ate_initial_m", "ate_now_m",
+               "omega_nonzero_blocks", "omega_blocks")
+
+    def __init__(self, seed: int = 0) -> None:
+        params = [
+            Param("steps", "drive length (steps)", "int", 150, lo=10, hi=600, step=10, live=False),
+            Param("motion_noise", "odometry noise (x default variance)", "float", 4.0, lo=0.1, hi=20.0, step=0.1,
+                  live=False),
+            Param("seed", "seed", "int", 0, lo=0, hi=2**31 - 1, step=1, live=False),
+        ]
+        super().__init__(params, seed)
+        self.actions = (("optimize", "optimize"), ("reset", "reset"))
+        self.graph_mod = optional_module("slam2d.graph")
+        self._build()
+
+    def _build(self) -> None:
+        cfg = ScenarioConfig(name="room", motion=MotionNoise().scaled(float(self.values["motion_noise"])),
+                             lidar=LidarConfig(enabled=False))
+        self.sim = Simulator(cfg, seed=int(self.values["seed"]))
+        self.route = WaypointFollower(self.sim.waypoints, float(self.sim.config.speed_mps or 1.0))
+        self.dr = make_estimator("dead-reckoning", log_metadata=self.sim.metadata())
+        self.dr.reset(self.sim.initial_pose, rng=self.sim.rng["estimator"])
+        self.dr_path: list[Array] = [self.sim.initial_pose.copy()]
+        self.values_now: Any = None
+        self.optimizer: Any = None
+        self.iteration = 0
+        self.cost = float("nan")
+        self.converged = False
+        self.factors = 0
+        self.edges = np.zeros((0, 4))
+        self.omega: Array | None = None
+        self.omega_nnz = (0, 0)
+        self._acc = 0.0
+        self.notices = [] if self.graph_mod is not None else ["not available yet: graph SLAM back end (slam2d.graph)"]
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        return tuple(float(b) for b in self.sim.world.bounds)  # type: ignore[return-value]
+
+    def on_param(self, name: str, value: Any, old: Any) -> None:
+        if value != old:
+            self._build()
+
+    def on_action(self, name: str) -> None:
+        if name == "reset":
+            self._build()
+        elif name == "optimize" and self.graph_mod is not None and self.values_now is None:
+            try:
+                self._make_graph()
+            except Exception as e:
+                self.notices = [f"graph could not be built: {type(e).__name__}: {e}"]
+
+    def _make_graph(self) -> None:
+        g: Any = self.graph_mod
+        log = self.sim.to_log()
+        t = log.num_steps
+        noise = self.sim.config.motion
+        graph = g.FactorGraph()
+        # odometry: z = pose t+1 in the frame of pose t; its covariance (dx, dy, dth) rotated into the factor's
+        # error frame (the translation error is expressed after rotating by -dth)
+        u = log.odometry
+        cov = odometry_covariance(u, noise)
+        c, s = np.cos(u[:, 2]), np.sin(u[:, 2])
+        j = np.zeros((t, 3, 3))
+        j[:, 0, 0], j[:, 0, 1], j[:, 1, 0], j[:, 1, 1], j[:, 2, 2] = c, s, -s, c, 1.0
+        cov_e = j @ cov @ np.swapaxes(j, 1, 2)
+        graph.add_between(np.arange(t), np.arange(1, t + 1), u, np.linalg.inv(cov_e))
+        keep = log.obs_id >= 0
+        steps, ids = log.obs_step[keep], log.obs_id[keep]
+        z = np.column_stack([log.obs_range_m[keep], log.obs_bearing_rad[keep]])
+        graph.add_range_bearing(steps, ids, z, np.linalg.inv(self.sim.config.sensor.covariance))
+        poses = np.asarray(self.dr_path)
+        lm_ids, first = np.unique(ids, return_index=True)
+        init_lm = range_bearing_inverse(poses[steps[first]], z[first])
+        self.values_now = g.Values(np.arange(t + 1), poses, lm_ids, init_lm)
+        self.optimizer = g.Optimizer(graph, g.OptimizerConfig(method="gn", max_iterations=1))
+        self.factors = t + len(ids)
+        self.lm_ids, self.obs_pairs, self.n_poses = lm_ids, (steps, ids), t + 1
+        # structure of the information matrix: one block per variable pair joined by a factor (and the diagonal)
+        v = t + 1 + len(lm_ids)
+        lm_index = t + 1 + np.searchsorted(lm_ids, ids)
+        blocks = np.eye(v, dtype=bool)
+        blocks[np.arange(t), np.arange(1, t + 1)] = blocks[np.arange(1, t + 1), np.arange(t)] = True
+        blocks[steps, lm_index] = blocks[lm_index, steps] = True
+        self.omega = block_average(blocks.astype(np.float64))
+        self.omega_nnz = (int(blocks.sum()), v * v)
+        assert log.true_poses is not None
+        self.initial_ate = ate(poses, log.true_poses).rmse_m
+
+    def advance(self, wall_dt_s: float) -> None:
+        if self.values_now is None:
+            # still driving: record the route at 20 steps/s until the chosen length
+            if self.sim.index >= int(self.values["steps"]):
+                return
+            self._acc += wall_dt_s * 20.0
+            n = min(int(self._acc), 8)
+            self._acc = 0.0 if n == 8 else self._acc - n
+            for _ in range(min(n, int(self.values["steps"]) - self.sim.index)):
+                v, w = self.route.command(self.sim.pose, self.sim.world.walls)
+                step = self.sim.step(v, w)
+                self.dr.step(step)
+                self.dr_path.append(np.asarray(self.dr.estimate().pose, dtype=np.float64).copy())
+            return
+        if self.converged:
+            return
+        # one Gauss-Newton iteration every 0.4 s, so the correction can be watched spreading
+        self._acc += wall_dt_s
+        if self._acc < 0.4:
+            return
+        self._acc = 0.0
+        try:
+            new, summary = self.optimizer.optimize(self.values_now)
+        except Exception as e:
+            self.notices = [f"optimisation failed: {type(e).__name__}: {e}"]
+            self.converged = True
+            return
+        self.iteration += 1
+        prev = self.cost
+        self.cost = float(summary.cost_final)
+        self.values_now = new
+        if self.iteration >= 20 or (prev == prev and prev - self.cost <= 1e-6 * max(prev, 1e-12)):
+            self.converged = True
+
+    def current_poses(self) -> Array:
+        if self.values_now is None:
+            return np.asarray(self.dr_path)
+        order = np.argsort(self.values_now.pose_keys)
+        return np.asarray(self.values_now.poses)[order]
+
+    def sections(self) -> Sections:
+        poses = self.current_poses()
+        truth = np.asarray(self.sim.to_log().true_poses) if self.values_now is not None else None
+        ate_now = ate(poses, truth).rmse_m if truth is not None else float("nan")
+        n_lm = len(self.values_now.point_keys) if self.values_now is not None else 0
+        nums = {"poses": float(len(poses)), "landmarks": float(n_lm), "factors": float(self.factors),
+                "iteration": float(self.iteration), "cost": self.cost,
+                "ate_initial_m": self.initial_ate if self.values_now is not None else float("nan"),
+                "ate_now_m": ate_now, "omega_nonzero_blocks": float(self.omega_nnz[0]),
+                "omega_blocks": float(self.omega_nnz[1])}
+        out: Sections = [("NUMS", np.array([nums[k] for k in self.scalars])), ("WALL", self.sim.world.walls),
+                         ("TLMK", self.sim.world.landmarks), ("TPOS", self.sim.pose),
+                         ("EPTH", _downsample(poses[:, :2])), ("EPOS", poses[-1])]
+        if self.values_now is not None:
+            pts = np.asarray(self.values_now.points)
+            lm_by_id = pts[np.searchsorted(self.values_now.point_keys, self.lm_ids)] if len(pts) else pts
+            steps, ids = self.obs_pairs
+            seg_obs = np.hstack([poses[steps, :2], lm_by_id[np.searchsorted(self.lm_ids, ids)]])
+            out += [("ELMK", pts), ("GNOD", poses[:, :2]), ("GEDG", seg_obs[:: max(1, len(seg_obs) // 1500)])]
+            if self.omega is not None:
+                out.append(("HEAT", self.omega))
         return out
