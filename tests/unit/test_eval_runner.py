@@ -75,3 +75,27 @@ def test_dead_reckoning_covariance_is_consistent():
 def test_unknown_names_list_the_valid_ones():
     with pytest.raises(ValueError, match="valid estimators.*dead-reckoning"):
         slam2d.run_named("nope")
+
+
+def test_run_association_scores_exact_case():
+    from slam2d.eval.association import run_association_scores
+
+    # estimator ids 7 and 9 stand for true landmarks 0 and 1; step 2 swaps one match
+    assign = [np.array([-1, -1]), np.array([7, 9]), np.array([9, 9, -2])]
+    truth = [np.array([0, 1]), np.array([0, 1]), np.array([0, 1, -1])]
+    s = run_association_scores(assign, truth)
+    assert s["assoc_precision"] == pytest.approx(3 / 4)  # 4 matches, the (9 for true 0) one is wrong
+    assert s["assoc_recall"] == pytest.approx(3 / 4)  # 4 matchable observations (steps 1, 2), 3 correct
+
+
+def test_run_cli_association_option_reaches_the_estimator(tmp_path):
+    import json
+
+    from slam2d.cli.main import main
+
+    out = tmp_path / "r.json"
+    assert main(["run", "--scenario", "room", "--estimator", "ekf", "--association", "mahalanobis",
+                 "--set", "steps=60", "--json", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert rec["estimator_config"]["association"]["method"] == "mahalanobis"
+    assert 0.9 < rec["assoc_precision"] <= 1.0 and 0.9 < rec["assoc_recall"] <= 1.0

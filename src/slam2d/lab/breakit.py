@@ -40,7 +40,7 @@ def thin_landmarks(log: Log, keep_fraction: float, rng: np.random.Generator) -> 
     if not 0.0 < keep_fraction <= 1.0:
         raise ValueError(f"keep_fraction must be in (0, 1] (got {keep_fraction})")
     ids = np.unique(log.obs_id[log.obs_id >= 0])
-    n_keep = max(1, int(round(keep_fraction * len(ids))))
+    n_keep = max(1, round(keep_fraction * len(ids)))
     kept = rng.choice(ids, size=n_keep, replace=False) if len(ids) else ids
     mask = np.isin(log.obs_id, kept) | (log.obs_id < 0)
     return dataclasses.replace(

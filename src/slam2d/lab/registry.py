@@ -1,7 +1,8 @@
 """Estimators by name: the single place that maps a CLI/web/sweep name to a config class and an estimator class.
 
-``make_estimator(name, overrides, log_metadata)`` fills an estimator config's ``motion`` and ``sensor`` fields from
-the log's recorded parameters (so a filter assumes the noise the data was made with) and then applies overrides.
+``make_estimator(name, overrides, log_metadata)`` fills an estimator config's ``motion`` and ``sensor`` fields
+(and ``gps_std_m``) from the log's recorded parameters (so a filter assumes the noise the data was made with)
+and then applies overrides.
 """
 
 from __future__ import annotations
@@ -26,6 +27,9 @@ class EstimatorSpec:
 
 ESTIMATORS: dict[str, EstimatorSpec] = {}
 
+#: scalar sensor settings an estimator config inherits from the log's recorded scenario config, like ``sensor``
+INHERITED_SCALARS = ("gps_std_m",)
+
 
 def register_estimator(name: str, config_cls: type, factory: Callable[[Any], Estimator], description: str) -> None:
     """Make an estimator available by ``name`` to the runner, CLI, sweeps and web lab."""
@@ -44,7 +48,9 @@ def _load_builtin() -> None:
 
 
 #: modules whose import registers more estimators; each back end adds its own line here
-_BUILTIN_MODULES: list[str] = []
+_BUILTIN_MODULES: list[str] = [
+    "slam2d.filters.ekf_slam",
+]
 
 
 def estimator_names() -> list[str]:
@@ -71,6 +77,10 @@ def make_config(name: str, overrides: Mapping[str, Any] | None = None,
         if key in fields and isinstance(meta.get(key), Mapping):
             known = set(data[key])
             data[key].update({k: v for k, v in meta[key].items() if k in known})
+    recorded = meta.get("config")
+    for key in INHERITED_SCALARS:
+        if key in fields and isinstance(recorded, Mapping) and recorded.get(key) is not None:
+            data[key] = recorded[key]
     cfg = from_dict(spec.config_cls, data)
     return with_overrides(cfg, overrides) if overrides else cfg
 

@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam2d.config import split_overrides, to_dict, with_overrides
+from slam2d.eval.association import run_association_scores
 from slam2d.eval.trajectory import ate, rpe
 from slam2d.filters.base import Estimate, Estimator
 from slam2d.lab.registry import get_spec, make_config
@@ -77,6 +78,8 @@ def run(
     show = progress if progress is not None else (t > 2000 and sys.stderr.isatty())
     tick = _progress(t, show)
     snap = first
+    assigned: list[NDArray[np.int64]] = []
+    truth_ids: list[NDArray[np.int64]] = []
     for i, step in enumerate(log, start=1):
         t0 = time.perf_counter()
         estimator.step(step)
@@ -86,6 +89,10 @@ def run(
         covs.append(snap.pose_cov)
         if keep_snapshots:
             snaps.append(snap)
+        assoc = snap.extras.get("assoc")
+        if assoc is not None and len(assoc) == len(step.observations):
+            assigned.append(np.asarray(assoc, dtype=np.int64))
+            truth_ids.append(step.observations.landmark_id)
         if on_step is not None:
             on_step(i, snap)
         tick(i)
@@ -94,6 +101,8 @@ def run(
     pose_covs = None if any(c is None for c in covs) else np.asarray(covs)
     result = RunResult(poses, trajectory, pose_covs, step_s, snap, snaps if keep_snapshots else None)
     result.metrics.update(score(result, log))
+    if assigned and np.any(log.obs_id >= 0):  # the source knows ids: score the association
+        result.metrics.update(run_association_scores(assigned, truth_ids))
     return result
 
 
