@@ -82,7 +82,11 @@ def test_malformed_and_oversized_messages_get_errors_and_the_session_lives_on(se
                 json.dumps({"type": "param", "name": "seed", "value": 1.5}),
                 json.dumps({"type": "key", "key": "Escape", "down": True}),
                 json.dumps({"type": "action", "name": "format_disk"}),
-                "[" * 5000, "x" * 100_000, b"\x00\x01binary",
+                "[" * 5000, "[" * 2000, "x" * 100_000, b"\x00\x01binary",
+                '{"type": "param", "name": "sensor_range_m", "value": 1' + "0" * 400 + "}",
+                json.dumps({"type": "param", "name": "drive", "value": {"nested": [1, 2]}}),
+                json.dumps({"type": "key", "key": ["ArrowUp"], "down": True}),
+                "null", '""',
             ]
             for m in bad:
                 await ws.send(m)

@@ -94,6 +94,10 @@ class Connection:
             except CommandError as e:
                 await self.send_json({"type": "error", "message": str(e)})
                 continue
+            except Exception as e:  # a bug in a session must cost one command, not the connection
+                log.warning("page %s: command failed: %s: %s", self.session.page, type(e).__name__, e)
+                await self.send_json({"type": "error", "message": f"command failed: {type(e).__name__}: {e}"})
+                continue
             if reply is not None:
                 await self.send_json(reply)
 

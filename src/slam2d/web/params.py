@@ -45,7 +45,11 @@ class Param:
         # numbers: reject bools (a JSON true is not a number here), NaN and out-of-range values
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise CommandError(f"{where} must be a number (got {value!r})")
-        v = float(value)
+        try:
+            v = float(value)
+        except OverflowError:  # a JSON integer beyond float range
+            raise CommandError(f"{where} must be in [{self.lo:g}, {self.hi:g}] (got a {len(str(value))}-digit "
+                               "number)") from None
         if not math.isfinite(v) or v < self.lo or v > self.hi:
             raise CommandError(f"{where} must be in [{self.lo:g}, {self.hi:g}] (got {value!r})")
         if self.kind == "int":
