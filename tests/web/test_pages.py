@@ -58,7 +58,7 @@ def test_page_loads_without_console_errors(page: Any, lab_server: str, artifacts
         # a missing back end is announced, never silently faked
         notices = page.evaluate("window.slamLab.notices")
         assert all("not available yet" in n or ":" in n for n in notices)
-    page.screenshot(path=str(artifacts / f"page-{slug}.png"))
+    page.screenshot(path=str(artifacts / f"page-{slug}.png"), full_page=True)
     assert errors == []
 
 
@@ -157,7 +157,7 @@ def test_ekf_state_dimension_counts_landmarks(page: Any, lab_server: str, artifa
     assert sections["ECOV"][0] == sections["ELMK"][0] == c["landmarks_mapped"]
     n = min(int(c["state_dim"]), 96)  # the heat map is block-averaged beyond 96 x 96
     assert sections["HEAT"] == [n, n]
-    page.screenshot(path=str(artifacts / "ekf-running.png"))
+    page.screenshot(path=str(artifacts / "ekf-running.png"), full_page=True)
     assert errors == []
 
 

@@ -165,7 +165,7 @@ function connect() {
   for (const k of ['seed', 'hz']) if (query.has(k)) qs.set(k, query.get(k));
   ws = new WebSocket(`${proto}://${location.host}/ws/${page}?${qs}`);
   ws.binaryType = 'arraybuffer';
-  ws.onopen = () => { lab.connected = true; };
+  ws.onopen = () => { lab.connected = true; statusEl.textContent = 'connected'; };
   ws.onclose = () => { lab.connected = false; statusEl.textContent = 'disconnected from the lab server'; };
   ws.onmessage = (ev) => { if (typeof ev.data === 'string') onText(ev.data); else onFrame(ev.data); };
 }
