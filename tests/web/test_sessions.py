@@ -316,3 +316,20 @@ def test_graph_page_optimises_the_drive_and_reports_sparsity() -> None:
     assert nums["ate_now_m"] < nums["ate_initial_m"]
     # Omega: chain of poses + pose-landmark blocks; far from dense
     assert 0 < nums["omega_nonzero_blocks"] < 0.5 * nums["omega_blocks"]
+
+
+def test_maps_page_topology_layer_has_places_and_connections() -> None:
+    from slam2d.web.backends import optional_module
+
+    s = PAGE_BY_SLUG["maps"].make(0)
+    s.apply({"type": "param", "name": "layer", "value": "topology"})
+    if optional_module("slam2d.maps.topology") is None or optional_module("slam2d.maps.occupancy") is None:
+        assert any("not available yet: topological map" in n for n in s.notices)
+        pytest.skip("slam2d.maps.topology not merged yet")
+    for _ in range(30):
+        s.advance(0.5)
+    s.sections()
+    _, sec = decode_frame(encode_frame(0, s.sections()))
+    nums = dict(zip(s.scalars, sec["NUMS"][0].tolist(), strict=True))
+    assert nums["places"] >= 2 and nums["connections"] >= 1
+    assert sec["GNOD"].shape == (nums["places"], 2) and sec["GEDG"].shape == (nums["connections"], 4)

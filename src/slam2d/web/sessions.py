@@ -665,7 +665,7 @@ class MapsSession(Session):
 
     page = "maps"
     title = "map representations"
-    scalars = ("step", "landmarks", "scan_points", "walls")
+    scalars = ("step", "landmarks", "scan_points", "walls", "places", "connections")
 
     def __init__(self, seed: int = 0) -> None:
         params = [
@@ -686,6 +686,10 @@ class MapsSession(Session):
         self._acc = 0.0
         self.grid: Any = None
         self.grid_error: str | None = None
+        self.topo_mod = optional_module("slam2d.maps.topology")
+        self.topo_error: str | None = None
+        self.topo: Any = None
+        self._topo_at = -1.0
         occ = optional_module("slam2d.maps.occupancy")
         if occ is not None:
             try:
@@ -699,11 +703,9 @@ class MapsSession(Session):
         self.notices = []
         if layer == "occupancy" and self.grid is None:
             self.notices.append(self.grid_error or "not available yet: occupancy grid (slam2d.maps.occupancy)")
-        if layer == "topology":
-            self.notices.append("not available yet: topological map (slam2d.maps.topology)"
-                                if optional_module("slam2d.maps.topology") is None else
-                                "not available yet in the lab: the topological map layer (slam2d.maps.topology "
-                                "exists; this page is not wired to it yet)")
+        if layer == "topology" and (self.topo_mod is None or self.grid is None):
+            self.notices.append(self.topo_error or "not available yet: topological map (slam2d.maps.topology, "
+                                                   "built from the occupancy grid)")
 
     def bounds(self) -> tuple[float, float, float, float]:
         return tuple(float(b) for b in self.sim.world.bounds)  # type: ignore[return-value]
@@ -741,8 +743,11 @@ class MapsSession(Session):
                         self._update_notices()
 
     def sections(self) -> Sections:
+        topo = self.topo if self.values["layer"] == "topology" else None
         nums = {"step": float(self.sim.index), "landmarks": float(len(self.sim.world.landmarks)),
-                "scan_points": float(len(self.points)), "walls": float(len(self.sim.world.walls))}
+                "scan_points": float(len(self.points)), "walls": float(len(self.sim.world.walls)),
+                "places": float(len(topo.places)) if topo is not None else float("nan"),
+                "connections": float(len(topo.edges)) if topo is not None else float("nan")}
         out: Sections = [("NUMS", np.array([nums[k] for k in self.scalars])), ("WALL", self.sim.world.walls),
                          ("TPOS", self.sim.pose)]
         if self.values["layer"] == "landmarks":
@@ -752,7 +757,27 @@ class MapsSession(Session):
         elif self.values["layer"] == "occupancy" and self.grid is not None:
             out.append(("GRID", self.grid.probability()))
             out.append(("GRDM", np.array([*self.grid.origin, self.grid.resolution])))
+        elif self.values["layer"] == "topology":
+            topo = self.topology()
+            if topo is not None:
+                places = np.asarray(topo.places, dtype=np.float64).reshape(-1, 2)
+                edges = np.asarray(topo.edges, dtype=np.int64).reshape(-1, 2)
+                out += [("GNOD", places), ("GEDG", np.hstack([places[edges[:, 0]], places[edges[:, 1]]]))]
         return out
+
+    def topology(self) -> Any:
+        """The topological map of the grid so far (recomputed at most once per simulated second: skeletons cost)."""
+        if self.topo_mod is None or self.grid is None:
+            return None
+        if self.sim.time_s - self._topo_at >= 1.0 or self.topo is None:
+            try:
+                self.topo = self.topo_mod.topology_from_grid(self.grid)
+                self._topo_at = self.sim.time_s
+            except Exception as e:
+                self.topo_mod, self.topo_error = None, f"topological map failed: {type(e).__name__}: {e}"
+                self._update_notices()
+                return None
+        return self.topo
 
 
 class NoticeSession(Session):
