@@ -333,3 +333,26 @@ def test_maps_page_topology_layer_has_places_and_connections() -> None:
     nums = dict(zip(s.scalars, sec["NUMS"][0].tolist(), strict=True))
     assert nums["places"] >= 2 and nums["connections"] >= 1
     assert sec["GNOD"].shape == (nums["places"], 2) and sec["GEDG"].shape == (nums["connections"], 4)
+
+
+def test_graph_view_edges_join_the_right_variables() -> None:
+    from slam2d.web.sessions import _graph_view_sections
+
+    view = {"poses": np.array([[0.0, 0, 0], [1, 0, 0], [2, 1, 0]]), "pose_keys": np.array([10, 5, 7]),
+            "points": np.array([[4.0, 4.0]]), "point_keys": np.array([3]),
+            "edges": {"between": np.array([[10, 5], [5, 7]]), "range_bearing": np.array([[7, 3]]),
+                      "prior": np.array([[10]])}}
+    sec = dict(_graph_view_sections(view))
+    np.testing.assert_array_equal(sec["GEDG"], [[0, 0, 1, 0], [1, 0, 2, 1], [2, 1, 4, 4]])
+    view["edges"] = {"between": np.array([[10, 99]])}
+    with pytest.raises(KeyError):
+        _graph_view_sections(view)
+
+
+def test_close_loop_button_explains_when_the_estimator_cannot() -> None:
+    s = PAGE_BY_SLUG["loop"].make(0)
+    assert ("close_loop", "close loop now") in s.actions
+    s.apply({"type": "param", "name": "estimator", "value": "dead-reckoning"})
+    s.apply({"type": "action", "name": "step"})
+    s.apply({"type": "action", "name": "close_loop"})
+    assert any("cannot close loops" in n for n in s.notices)

@@ -201,8 +201,8 @@ class SimSession(Session):
 
     page = "sim"
     scalars = ("step", "time_s", "landmarks_seen", "landmarks_mapped", "landmarks_tentative", "state_dim",
-               "ate_rmse_m", "pose_error_m", "n_eff", "particles", "resamples", "est_ms", "true_x", "true_y",
-               "true_theta")
+               "ate_rmse_m", "pose_error_m", "n_eff", "particles", "resamples", "loops_accepted", "est_ms", "true_x",
+               "true_y", "true_theta")
 
     def __init__(self, *, page: str, title: str, seed: int = 0, prefer: Sequence[str] = (), scenario: str = "room",
                  drive: str = "keys", controls: Sequence[str] = (), speed: float = 10.0, heat: bool = False,
@@ -228,6 +228,8 @@ class SimSession(Session):
             self.values.setdefault(k, v)
         self.heat = heat
         self.actions = (("reset", "reset"), ("step", "one step"))
+        if page == "loop":
+            self.actions += (("close_loop", "close loop now"),)
         self.prefer = tuple(prefer)
         self.need_note = need_note
         self.static_notes = list(notes)
@@ -338,6 +340,26 @@ class SimSession(Session):
             self._build()
         elif name == "step":
             self._step_once()
+        elif name == "close_loop":
+            self._close_loop()
+
+    def _close_loop(self) -> None:
+        """Ask the back end to close a loop from the latest observations now (back ends with ``close_loop_now``)."""
+        self.notices = [n for n in self.notices if not n.startswith("close loop")]
+        fn = getattr(self.est, "close_loop_now", None)
+        if fn is None or self.last_step is None:
+            self.notices.append(f"close loop: estimator '{self.values['estimator']}' cannot close loops on request"
+                                if fn is None else "close loop: drive first; there are no observations yet")
+            return
+        obs = self.last_step.observations
+        try:
+            ok = bool(fn(obs.z[obs.landmark_id != -2]))
+        except Exception as e:
+            self.notices.append(f"close loop failed: {type(e).__name__}: {e}")
+            return
+        self.snap = self.est.estimate()
+        self.notices.append("close loop: accepted — the correction spread along the trajectory" if ok else
+                            "close loop: no verified loop from here (drive back near the start and try again)")
 
     # --- simulation ---------------------------------------------------------------------------------------------
     def command(self) -> tuple[float, float]:
@@ -440,6 +462,7 @@ class SimSession(Session):
             "landmarks_mapped": float(len(snap.landmarks)),
             "landmarks_tentative": float(len(tent)) if tent is not None else float("nan"),
             "resamples": float(self.resamples),
+            "loops_accepted": float(snap.extras.get("loops_accepted", float("nan"))),
             "state_dim": float(sd) if sd is not None else float("nan"),
             "ate_rmse_m": self.ate_rmse(),
             "pose_error_m": float(np.hypot(*(np.asarray(snap.pose)[:2] - pose[:2]))),
@@ -494,7 +517,41 @@ class SimSession(Session):
         graph = snap.extras.get("graph")
         if isinstance(graph, Mapping):
             out.extend(_graph_sections(graph))
+        elif self.page in ("graph", "loop") and hasattr(self.est, "graph_view"):
+            try:
+                out.extend(_graph_view_sections(self.est.graph_view()))
+            except Exception:  # a drawing aid only: a changed view format must not break the page
+                pass
         return out
+
+
+def _lookup(keys: NDArray[np.int64], values: Array, query: NDArray[np.int64]) -> Array:
+    """Rows of ``values`` whose ``keys`` equal ``query`` (each must exist). Shapes: (N,),(N,d),(Q,) -> (Q,d)."""
+    order = np.argsort(keys, kind="stable")
+    pos = np.clip(np.searchsorted(keys, query, sorter=order), 0, max(len(keys) - 1, 0))
+    idx = order[pos]
+    if len(query) and not np.array_equal(keys[idx], query):
+        raise KeyError("graph edge refers to an unknown variable")
+    return values[idx]
+
+
+def _graph_view_sections(view: Mapping[str, Any]) -> Sections:
+    """Segments for a back end's ``graph_view()``: poses/points with keys, edges per factor kind as key pairs."""
+    pk = np.asarray(view["pose_keys"], dtype=np.int64)
+    poses = np.asarray(view["poses"], dtype=np.float64).reshape(-1, 3)[:, :2]
+    qk = np.asarray(view["point_keys"], dtype=np.int64)
+    pts = np.asarray(view["points"], dtype=np.float64).reshape(-1, 2)
+    segs = []
+    for kind, keys in dict(view["edges"]).items():
+        if kind not in ("between", "range_bearing", "point", "bearing", "range"):
+            continue  # unary factors (priors, GPS) have no edge to draw
+        k = np.asarray(keys, dtype=np.int64).reshape(-1, 2)
+        if kind == "between":
+            segs.append(np.hstack([_lookup(pk, poses, k[:, 0]), _lookup(pk, poses, k[:, 1])]))
+        else:
+            segs.append(np.hstack([_lookup(pk, poses, k[:, 0]), _lookup(qk, pts, k[:, 1])]))
+    edges = np.vstack(segs) if segs else np.zeros((0, 4))
+    return [("GNOD", poses), ("GEDG", edges[:: max(1, len(edges) // 3000)])]
 
 
 def _graph_sections(graph: Mapping[str, Any]) -> Sections:
