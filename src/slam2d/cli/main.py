@@ -20,6 +20,8 @@ COMMANDS = [
     "slam2d.cli.report",
     "slam2d.cli.datasets",
     "slam2d.cli.optimize",
+    "slam2d.cli.lab",
+    "slam2d.cli.exercise",
 ]
 
 
