@@ -150,6 +150,7 @@ def icp(source: ArrayLike, target: ArrayLike, initial: ArrayLike | None = None,
 
     converged = False
     it = 0
+    history: list[Array] = []
     for it in range(1, cfg.max_iterations + 1):
         ok, j, moved = match(t)
         if len(ok) < cfg.min_matches:
@@ -167,9 +168,12 @@ def icp(source: ArrayLike, target: ArrayLike, initial: ArrayLike | None = None,
             delta = -np.linalg.lstsq(jac, r, rcond=1e-8)[0]
             t = se2.retract(t, delta)
             step = np.abs(delta)
-        if np.all(step < cfg.tolerance):
+        # trimmed matching can flip between two correspondence sets forever (a limit cycle of ~1 mm): returning
+        # to a transform of the last few iterations is convergence as well
+        if np.all(step < cfg.tolerance) or any(np.all(np.abs(se2.local(h, t)) < cfg.tolerance) for h in history):
             converged = True
             break
+        history = [*history[-3:], t]
     ok, j, moved = match(t)
     if len(ok) < cfg.min_matches:
         return ICPResult(t, np.full((3, 3), np.inf), False, it, len(ok), float("inf"), len(ok) / len(src))
