@@ -14,6 +14,7 @@ COMMANDS = [
     "slam2d.cli.simulate",
     "slam2d.cli.run",
     "slam2d.cli.demo",
+    "slam2d.cli.lidar",
 ]
 
 
