@@ -55,7 +55,7 @@ def test_a_moving_point_is_flagged_dynamic_a_static_one_is_not(rng: np.random.Ge
     sigma = 0.15
     c = np.eye(2)[None] * sigma**2
     flagged = {"static": 0, "moving": 0}
-    for trial in range(50):
+    for _trial in range(50):
         for kind, v in (("static", 0.0), ("moving", 0.16)):  # the forklift: one sigma of drift per step
             m = LandmarkMap(cfg)
             z0 = np.array([3.0, 4.0])

@@ -139,7 +139,7 @@ def icp(source: ArrayLike, target: ArrayLike, initial: ArrayLike | None = None,
     tree = cKDTree(tgt)
     normals = estimate_normals(tgt, cfg.normal_neighbours, tree) if cfg.method == "point-to-line" else None
 
-    def match(tr: Array) -> tuple[Array, Array, Array]:
+    def match(tr: Array) -> tuple[NDArray[np.intp], NDArray[np.intp], Array]:
         moved = se2.transform_points(tr, src)
         d, j = tree.query(moved, distance_upper_bound=cfg.max_correspondence_m)
         ok = np.flatnonzero(np.isfinite(d))

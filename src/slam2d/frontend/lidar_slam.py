@@ -217,7 +217,7 @@ def run_lidar_slam(odom_poses: ArrayLike, ranges: ArrayLike, angles: ArrayLike, 
         ei.append(i)
         ej.append(j)
         ez.append(z)
-        einfo.append(np.linalg.inv(_floor_cov(cov, cfg)))
+        einfo.append(np.asarray(np.linalg.inv(_floor_cov(cov, cfg)), dtype=np.float64))
         eloop.append(loop)
 
     odo_only = np.zeros_like(est)

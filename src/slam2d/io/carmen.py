@@ -123,7 +123,7 @@ def flaser_angles(n: int) -> Array:
     """CARMEN FLASER beam angles: 180 deg field of view from -90 deg. Shapes: -> (n,)."""
     if n == 361 or n == 181:
         return np.linspace(-np.pi / 2, np.pi / 2, n)
-    return -np.pi / 2 + np.arange(n) * (np.pi / n)
+    return np.asarray(-np.pi / 2 + np.arange(n) * (np.pi / n), dtype=np.float64)
 
 
 def _open_lines(path: Path) -> Iterator[str]:
@@ -217,7 +217,7 @@ def read_carmen(path: str | Path, config: CarmenConfig | None = None) -> CarmenL
                     rest = _floats(tok, base, 12, "poses, velocities and ipc_timestamp")
                     if len(tok) < base + 14:
                         raise _Bad(f"truncated ROBOTLASER1 record: expected {base + 14} fields, got {len(tok)}")
-                    a = head[0] + np.arange(n) * head[2]
+                    a = np.asarray(head[0] + np.arange(n) * head[2], dtype=np.float64)
                     pose = rest[0:3]
                     ts = rest[11]
                 elif kind == "ODOM":

@@ -12,8 +12,8 @@ is below the chi-square quantile with ``2 (n - 1)`` degrees of freedom. A forkli
 away from its own mean by more than the sensor noise explains: it fails the test, is marked ``dynamic`` and is
 never confirmed. Because a slow object drifts by about one noise sigma per step, the generic test is weak against
 it; a second, sharper test fits a constant-velocity line ``z(t) = a + b t`` (t in steps) by weighted least squares
-and flags the landmark when the velocity is significant, ``b^T Cov(b)^-1 b > chi2_2(velocity_probability)``. Tentative landmarks not seen for ``max_unseen_steps`` steps are dropped
-(:meth:`LandmarkMap.prune`).
+and flags the landmark when the velocity is significant, ``b^T Cov(b)^-1 b > chi2_2(velocity_probability)``.
+Tentative landmarks not seen for ``max_unseen_steps`` steps are dropped (:meth:`LandmarkMap.prune`).
 
 :class:`PersistentLandmarkMapper` is the simplest user of the map: given poses (true or estimated) and
 range-bearing observations, it fuses each sighting into the nearest landmark within a Mahalanobis gate
@@ -60,7 +60,8 @@ class PersistenceConfig:
             raise ValueError("PersistenceConfig.consistency_probability must be in (0, 1) "
                              f"(got {self.consistency_probability})")
         if not 0 < self.velocity_probability < 1:
-            raise ValueError(f"PersistenceConfig.velocity_probability must be in (0, 1) (got {self.velocity_probability})")
+            raise ValueError("PersistenceConfig.velocity_probability must be in (0, 1) "
+                             f"(got {self.velocity_probability})")
         if not 0 < self.gate_probability < 1:
             raise ValueError(f"PersistenceConfig.gate_probability must be in (0, 1) (got {self.gate_probability})")
 
