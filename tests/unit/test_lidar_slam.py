@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import dataset_path
 from slam2d.cli.main import main
 from slam2d.frontend.lidar_slam import (
     LidarSlamConfig,
@@ -20,7 +21,6 @@ from slam2d.frontend.lidar_slam import (
 from slam2d.geometry import se2
 from slam2d.io.carmen import read_carmen, read_relations
 from slam2d.sim import simulate
-from conftest import dataset_path
 
 
 def ring(n: int) -> np.ndarray:
