@@ -48,7 +48,8 @@ def test_loop_closure_beats_odometry_with_drifting_odometry(rng: np.random.Gener
     z = se2.between(truth[i], truth[j]) + rng.normal(0, [0.05, 0.05, 0.02], (39, 3)) + [0.0, 0.0, 0.01]
     zl = se2.between(truth[[0]], truth[[39]])
     edges = PoseGraphEdges(np.r_[i, 0], np.r_[j, 39], np.vstack([z, zl]),
-                           np.repeat(np.diag([400.0, 400.0, 2500.0])[None], 40, axis=0), np.r_[np.zeros(39, bool), True])
+                           np.repeat(np.diag([400.0, 400.0, 2500.0])[None], 40, axis=0),
+                           np.r_[np.zeros(39, bool), True])
     odo = [truth[0]]
     for k in range(39):
         odo.append(se2.compose(odo[-1], z[k]))
@@ -116,7 +117,10 @@ def test_cli_bad_dataset_name(capsys: pytest.CaptureFixture[str]) -> None:
 
 @pytest.mark.slow
 def test_aces_relation_errors() -> None:
-    """ACES: Kümmerle et al. relation errors. Measured: 0.048 +- 0.055 m, 0.84 +- 1.22 deg (odometry 0.55 m, 2.3 deg)."""
+    """ACES, Kümmerle et al. relation errors.
+
+    Measured: 0.048 +- 0.055 m, 0.84 +- 1.22 deg (odometry: 0.55 m, 2.3 deg).
+    """
     log = read_carmen(dataset_path("radish-laser-logs", "aces.clf.bz2"))
     rs, rel = read_relations(dataset_path("radish-laser-logs", "aces.relations"))
     res = run_lidar_slam(log.poses, log.ranges_m, log.angles_rad, log.max_range_m)
