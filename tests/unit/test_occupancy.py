@@ -124,3 +124,16 @@ def test_decay_forgets_a_moved_object() -> None:
     assert fade.free()[fade.box_cells].all()  # type: ignore[attr-defined]
     assert not keep.free()[keep.box_cells].any()  # type: ignore[attr-defined]
     assert not keep.occupied()[keep.box_cells].any()  # type: ignore[attr-defined]
+
+
+def test_wall_thickness_measure() -> None:
+    from slam2d.maps.occupancy import wall_thickness_cells
+
+    g = OccupancyGrid((0, 0, 10, 10), OccupancyConfig(resolution_m=0.1))
+    g.logodds[:] = -1.0
+    g.logodds[20, 10:90] = 2.0  # a one-cell wall
+    g.logodds[50:53, 10:90] = 2.0  # a three-cell wall
+    g.logodds[80, 80] = 2.0  # a speck: ignored
+    t = wall_thickness_cells(g)
+    assert np.isclose(np.median(t[t < 2]), 1.0) and np.isclose(np.median(t[t >= 2]), 3.0)
+    assert 0.4 < np.mean(t < 2) < 0.6

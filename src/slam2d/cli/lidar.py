@@ -52,7 +52,12 @@ def cmd(args: argparse.Namespace) -> int:
 
     from slam2d.frontend.lidar_slam import LidarSlamConfig, relation_errors, run_lidar_slam
     from slam2d.io.carmen import read_carmen, read_relations
-    from slam2d.maps.occupancy import OccupancyConfig, OccupancyGrid, transform_scan_points
+    from slam2d.maps.occupancy import (
+        OccupancyConfig,
+        OccupancyGrid,
+        transform_scan_points,
+        wall_thickness_cells,
+    )
     from slam2d.viz.maps import save_occupancy_png
 
     path = resolve_dataset(args.dataset)
@@ -76,11 +81,13 @@ def cmd(args: argparse.Namespace) -> int:
     name = Path(path).name.split(".")[0]
     out = Path(args.out or f"{name}_map.png")
     save_occupancy_png(grid, out, res.poses if args.path else None)
+    thick = wall_thickness_cells(grid)
     t3 = time.perf_counter()
     record: dict[str, Any] = {
         "log": str(path), "scans": log.num_scans, "keyframes": len(res.keyframes), "loops": res.loops_accepted,
         "loops_tried": res.loops_tried, "icp_failures": res.icp_failures, "map": str(out),
-        "map_cells": f"{grid.shape[1]}x{grid.shape[0]}", "read_s": round(t1 - t0, 1), "slam_s": round(t2 - t1, 1),
+        "map_cells": f"{grid.shape[1]}x{grid.shape[0]}", "wall_cells_median": float(np.median(thick)) if len(thick) else float("nan"),
+        "wall_cells_p90": float(np.percentile(thick, 90)) if len(thick) else float("nan"), "read_s": round(t1 - t0, 1), "slam_s": round(t2 - t1, 1),
         "map_s": round(t3 - t2, 1),
     }
     rel_path = Path(args.relations) if args.relations else Path(str(path).replace(".clf.bz2", ".relations")
