@@ -86,9 +86,10 @@ def cmd(args: argparse.Namespace) -> int:
     record: dict[str, Any] = {
         "log": str(path), "scans": log.num_scans, "keyframes": len(res.keyframes), "loops": res.loops_accepted,
         "loops_tried": res.loops_tried, "icp_failures": res.icp_failures, "map": str(out),
-        "map_cells": f"{grid.shape[1]}x{grid.shape[0]}", "wall_cells_median": float(np.median(thick)) if len(thick) else float("nan"),
-        "wall_cells_p90": float(np.percentile(thick, 90)) if len(thick) else float("nan"), "read_s": round(t1 - t0, 1), "slam_s": round(t2 - t1, 1),
-        "map_s": round(t3 - t2, 1),
+        "map_cells": f"{grid.shape[1]}x{grid.shape[0]}",
+        "wall_cells_median": float(np.median(thick)) if len(thick) else float("nan"),
+        "wall_cells_p90": round(float(np.percentile(thick, 90)), 2) if len(thick) else float("nan"),
+        "read_s": round(t1 - t0, 1), "slam_s": round(t2 - t1, 1), "map_s": round(t3 - t2, 1),
     }
     rel_path = Path(args.relations) if args.relations else Path(str(path).replace(".clf.bz2", ".relations")
                                                                      .replace(".clf", ".relations"))
