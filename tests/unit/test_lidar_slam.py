@@ -98,7 +98,8 @@ def test_pipeline_on_a_simulated_carmen_log_via_cli(tmp_path: Path) -> None:
     path, truth, _ = write_carmen_from_sim(tmp_path)
     out = tmp_path / "map.png"
     js = tmp_path / "r.json"
-    assert main(["lidar", "--dataset", str(path), "--out", str(out), "--json", str(js), "--resolution", "0.1"]) == 0
+    assert main(["lidar", "--dataset", str(path), "--out", str(out), "--json", str(js), "--resolution", "0.1",
+                 "--refine-scans"]) == 0
     rec = json.loads(js.read_text())
     assert out.exists() and out.stat().st_size > 1000
     # scan matching must beat the drifting odometry on the relations, and be accurate in absolute terms

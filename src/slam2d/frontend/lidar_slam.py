@@ -12,8 +12,8 @@ Pipeline (:func:`run_lidar_slam`):
    overlap and a small residual adds an edge;
 4. after new loop edges the pose graph is re-solved (:func:`solve_pose_graph`: sparse Gauss-Newton with a Cauchy
    kernel on the loop edges, first pose fixed);
-5. non-keyframe scans get the pose of their keyframe composed with the odometry increment since it; all scans are
-   then integrated into an :class:`~slam2d.maps.occupancy.OccupancyGrid`.
+5. non-keyframe scans get the pose of their keyframe composed with the odometry increment since it, or, with
+   ``refine_scans``, are each matched by ICP to the local map around their keyframe (fixed at its optimised pose).
 
 The pose-graph solver here is deliberately small (scipy sparse LU on the normal equations); it is a stand-in until the
 graph back end (``slam2d.graph``) lands, not a replacement for it.
@@ -77,6 +77,9 @@ class LidarSlamConfig:
     """Cauchy kernel scale on loop edges, in standard deviations (0: plain least squares)."""
     solver_iterations: int = 10
     """Gauss-Newton iterations per pose-graph solve."""
+    refine_scans: bool = False
+    """after the graph solve, match every non-keyframe scan to the local map around its keyframe (slower: one ICP
+    per scan) instead of placing it by odometry from its keyframe."""
 
     def __post_init__(self) -> None:
         check_positive(self, "keyframe_distance_m", "keyframe_angle_rad", "max_range_m", "min_sigma_xy_m",
@@ -264,6 +267,18 @@ def run_lidar_slam(odom_poses: ArrayLike, ranges: ArrayLike, angles: ArrayLike, 
     if cfg.loop_closure and loops_ok:
         est, _ = solve_pose_graph(est, edges, cfg.solver_iterations, cfg.cauchy_scale)
     poses = interpolate_poses(odom, kfa, est)
+    if cfg.refine_scans:
+        owner = np.searchsorted(kfa, np.arange(s), side="right") - 1
+        for k in range(len(kfa)):  # one local map per keyframe, one ICP per scan it owns
+            members = np.flatnonzero((owner == k) & (np.arange(s) != kfa[k]))
+            if len(members) == 0:
+                continue
+            target = local_map(min(k + 2, len(kfa) - 1), k - 2, k + 3, est[k])
+            for m in members:
+                res = icp(_scan_points(rng_all[m], ang, lim), target, initial=se2.between(est[k], poses[m]),
+                          config=cfg.icp)
+                if res.converged and res.fitness > 0.5:
+                    poses[m] = se2.compose(est[k], res.transform)
     odo_poses = interpolate_poses(odom, kfa, odo_only)
     return LidarSlamResult(poses, kfa, est, odo_poses, edges, loops_ok, loops_tried, failures)
 
