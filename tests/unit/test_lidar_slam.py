@@ -111,9 +111,14 @@ def test_pipeline_on_a_simulated_carmen_log_via_cli(tmp_path: Path) -> None:
     assert np.mean(np.hypot(*(aligned[:, :2] - truth[:, :2]).T)) < 0.15
 
 
-def test_cli_bad_dataset_name(capsys: pytest.CaptureFixture[str]) -> None:
+def test_cli_bad_dataset_name_and_bad_override(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["lidar", "--dataset", "no-such-log"]) == 2
     assert "not a known dataset" in capsys.readouterr().err
+    path, _, _ = write_carmen_from_sim(tmp_path, steps=20)
+    assert main(["lidar", "--dataset", str(path), "--set", "keyframe_distance_m=-1"]) == 2
+    assert "keyframe_distance_m" in capsys.readouterr().err
+    assert main(["lidar", "--dataset", str(path), "--set", "no_such_field=1"]) == 2
+    assert "unknown key" in capsys.readouterr().err
 
 
 @pytest.mark.slow

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from slam2d.cli.common import print_table, write_json
+from slam2d.cli.common import overrides_from, print_table, write_json
 
 DATASETS = {"intel-laser": "intel", "intel": "intel", "aces": "aces", "fr079": "fr079", "mit-csail": "mit-csail"}
 
@@ -28,6 +28,9 @@ def register(sub: Any) -> None:
     p.add_argument("--relations", default=None, help="relations file (default: <log>.relations if present)")
     p.add_argument("--path", action="store_true", help="draw the estimated trajectory on the map")
     p.add_argument("--json", default=None, metavar="OUT", help="write the result record as JSON")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a LidarSlamConfig field (repeatable), e.g. --set keyframe_distance_m=0.05 "
+                        "--set icp.trim_fraction=0.9")
     p.set_defaults(func=cmd)
 
 
@@ -52,6 +55,7 @@ def cmd(args: argparse.Namespace) -> int:
 
     import numpy as np
 
+    from slam2d.config import with_overrides
     from slam2d.frontend.lidar_slam import LidarSlamConfig, relation_errors, run_lidar_slam
     from slam2d.io.carmen import read_carmen, read_relations
     from slam2d.maps.occupancy import (
@@ -68,7 +72,8 @@ def cmd(args: argparse.Namespace) -> int:
     print(log.summary())
     if log.num_scans < 2:
         raise ValueError(f"{path}: fewer than 2 usable scans")
-    cfg = LidarSlamConfig(loop_closure=not args.no_loops, refine_scans=args.refine_scans)
+    cfg = with_overrides(LidarSlamConfig(loop_closure=not args.no_loops, refine_scans=args.refine_scans),
+                         overrides_from(args))
     t1 = time.perf_counter()
     res = run_lidar_slam(log.poses, log.ranges_m, log.angles_rad, log.max_range_m, cfg)
     t2 = time.perf_counter()
