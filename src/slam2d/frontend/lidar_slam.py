@@ -77,6 +77,10 @@ class LidarSlamConfig:
     """Cauchy kernel scale on loop edges, in standard deviations (0: plain least squares)."""
     solver_iterations: int = 10
     """Gauss-Newton iterations per pose-graph solve."""
+    track_scans: bool = False
+    """match every scan (not only keyframes) against the local map as it arrives: the next keyframe starts from the
+    tracked pose instead of a multi-scan odometry guess, and scans between keyframes keep their matched pose
+    relative to their keyframe (needed when odometry is poor or out of step with the laser, e.g. fr079)."""
     refine_scans: bool = False
     """after the graph solve, match every non-keyframe scan to the local map around its keyframe (slower: one ICP
     per scan) instead of placing it by odometry from its keyframe."""
@@ -225,9 +229,18 @@ def run_lidar_slam(odom_poses: ArrayLike, ranges: ArrayLike, angles: ArrayLike, 
 
     odo_only = np.zeros_like(est)
     odo_only[0] = est[0]
+    rel = np.zeros((s, 3))  # with track_scans: each scan's pose relative to its keyframe
     for k in range(1, len(kfa)):
         guess = se2.compose(est[k - 1], se2.between(odom[kfa[k - 1]], odom[kfa[k]]))
         target = local_map(k - 1, k - cfg.local_map_keyframes, k, est[k - 1])
+        if cfg.track_scans:
+            cur = np.zeros(3)  # tracked pose relative to keyframe k-1, one small odometry step at a time
+            for m in range(kfa[k - 1] + 1, kfa[k]):
+                g = se2.compose(cur, se2.between(odom[m - 1], odom[m]))
+                r_m = icp(_scan_points(rng_all[m], ang, lim), target, initial=g, config=cfg.icp)
+                cur = r_m.transform if r_m.converged and r_m.fitness > 0.5 else g
+                rel[m] = cur
+            guess = se2.compose(est[k - 1], se2.compose(cur, se2.between(odom[kfa[k] - 1], odom[kfa[k]])))
         res = icp(pts[k], target, initial=se2.between(est[k - 1], guess), config=cfg.icp)
         if res.converged and res.fitness > 0.5:
             z, cov = res.transform, res.covariance
@@ -267,6 +280,10 @@ def run_lidar_slam(odom_poses: ArrayLike, ranges: ArrayLike, angles: ArrayLike, 
     if cfg.loop_closure and loops_ok:
         est, _ = solve_pose_graph(est, edges, cfg.solver_iterations, cfg.cauchy_scale)
     poses = interpolate_poses(odom, kfa, est)
+    if cfg.track_scans:
+        owner = np.searchsorted(kfa, np.arange(s), side="right") - 1
+        inside = (np.arange(s) != kfa[owner]) & (owner < len(kfa) - 1)  # scans after the last keyframe: odometry
+        poses[inside] = se2.compose(est[owner[inside]], rel[inside])
     if cfg.refine_scans:
         owner = np.searchsorted(kfa, np.arange(s), side="right") - 1
         for k in range(len(kfa)):  # one local map per keyframe, one ICP per scan it owns
@@ -274,11 +291,11 @@ def run_lidar_slam(odom_poses: ArrayLike, ranges: ArrayLike, angles: ArrayLike, 
             if len(members) == 0:
                 continue
             target = local_map(min(k + 2, len(kfa) - 1), k - 2, k + 3, est[k])
-            for m in members:
-                res = icp(_scan_points(rng_all[m], ang, lim), target, initial=se2.between(est[k], poses[m]),
+            for mi in members.tolist():
+                res = icp(_scan_points(rng_all[mi], ang, lim), target, initial=se2.between(est[k], poses[mi]),
                           config=cfg.icp)
                 if res.converged and res.fitness > 0.5:
-                    poses[m] = se2.compose(est[k], res.transform)
+                    poses[mi] = se2.compose(est[k], res.transform)
     odo_poses = interpolate_poses(odom, kfa, odo_only)
     return LidarSlamResult(poses, kfa, est, odo_poses, edges, loops_ok, loops_tried, failures)
 
