@@ -22,6 +22,7 @@ COMMANDS = [
     "slam2d.cli.optimize",
     "slam2d.cli.lab",
     "slam2d.cli.exercise",
+    "slam2d.cli.lidar",
 ]
 
 

@@ -1,0 +1,199 @@
+"""Iterative closest point scan matching in SE(2): point-to-point and point-to-line, with a constraint covariance.
+
+Convention (the one every caller relies on): ``icp(source, target)`` returns ``T = T_target_source``, the pose of the
+source frame expressed in the target frame, so that ``transform_points(T, source) ~ target``. For two scans taken at
+poses ``a`` (target) and ``b`` (source), ``T`` estimates ``between(a, b)`` and ``b = compose(a, T)``.
+
+Each iteration matches the source points, moved by the current estimate, to their nearest target points (one
+``cKDTree`` query for all points), rejects pairs farther than ``max_correspondence_m`` and then keeps the
+``trim_fraction`` closest (trimmed ICP). Point-to-point solves the increment in closed form (SVD, with the
+det(R) = +1 guard against reflections) and composes it on the LEFT, ``T <- dT (+) T``, because it was estimated
+between points already expressed in the target frame. Point-to-line takes Gauss-Newton steps on
+``r_i = n_i . (R p_i + t - q_i)`` directly in the pose parameters (additive with wrap, the library's convention).
+
+Covariance: ``sigma^2 (J^T J)^-1`` at the solution, with ``J`` the Jacobian of the final residuals with respect to
+``[x, y, theta]`` of ``T`` and ``sigma^2`` the residual variance (sum of squares over dof). It is the usual
+Hessian-based estimate: it captures degeneracy (a corridor is unconstrained along its axis) but not wrong matches.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
+
+from slam2d.config import check_positive, check_probability
+from slam2d.geometry import se2
+from slam2d.geometry.angles import wrap_angle
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class ICPConfig:
+    """Scan-matching settings."""
+
+    method: Literal["point-to-point", "point-to-line"] = "point-to-line"
+    """error metric: distance to the matched point, or to the line through it (needs target normals)."""
+    max_iterations: int = 40
+    """iteration cap."""
+    max_correspondence_m: float = 1.0
+    """matches farther than this are outliers (m)."""
+    trim_fraction: float = 0.9
+    """after the distance gate keep only this fraction of the closest matches (1.0: no trimming)."""
+    tolerance: float = 1e-6
+    """stop when the update is smaller than this (m and rad)."""
+    normal_neighbours: int = 5
+    """points used to fit each target normal (point-to-line)."""
+    min_matches: int = 8
+    """fewer accepted matches than this means failure (``converged=False``)."""
+
+    def __post_init__(self) -> None:
+        if self.method not in ("point-to-point", "point-to-line"):
+            raise ValueError(f"ICPConfig.method must be 'point-to-point' or 'point-to-line' (got {self.method!r})")
+        check_positive(self, "max_correspondence_m", "tolerance")
+        check_probability(self, "trim_fraction", open_low=True)
+        if self.max_iterations < 1:
+            raise ValueError(f"ICPConfig.max_iterations must be >= 1 (got {self.max_iterations})")
+        if self.normal_neighbours < 2:
+            raise ValueError(f"ICPConfig.normal_neighbours must be >= 2 (got {self.normal_neighbours})")
+        if self.min_matches < 3:
+            raise ValueError(f"ICPConfig.min_matches must be >= 3 (got {self.min_matches})")
+
+
+@dataclass(frozen=True)
+class ICPResult:
+    """Outcome of one alignment. Shapes: transform (3,) = T_target_source, covariance (3,3)."""
+
+    transform: Array
+    covariance: Array
+    converged: bool
+    iterations: int
+    matches: int
+    rmse_m: float
+    fitness: float
+    """fraction of source points with an accepted match."""
+
+
+def estimate_normals(points: ArrayLike, k: int = 5, tree: cKDTree | None = None) -> Array:
+    """Unit normals by PCA of each point's ``k`` nearest neighbours (all points at once). Shapes: (N,2) -> (N,2)."""
+    p = np.asarray(points, dtype=np.float64)
+    k = min(k, len(p))
+    tree = tree if tree is not None else cKDTree(p)
+    _, idx = tree.query(p, k=k)
+    nb = p[idx.reshape(len(p), k)]  # (N,k,2)
+    c = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", c, c)
+    _, vec = np.linalg.eigh(cov)  # ascending eigenvalues: column 0 is the normal
+    return vec[:, :, 0]
+
+
+def kabsch_2d(p: ArrayLike, q: ArrayLike) -> Array:
+    """Least-squares rigid transform ``T`` with ``transform_points(T, p) ~ q`` (never a reflection).
+
+    Shapes: (N,2),(N,2) -> (3,).
+    """
+    p, q = np.asarray(p, dtype=np.float64), np.asarray(q, dtype=np.float64)
+    pm, qm = p.mean(axis=0), q.mean(axis=0)
+    h = (p - pm).T @ (q - qm)
+    u, _, vt = np.linalg.svd(h)
+    # det guard: a reflection fits mirrored data better than any rotation; flip the weakest axis instead
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    r = vt.T @ np.diag([1.0, d]) @ u.T
+    t = qm - r @ pm
+    return np.array([t[0], t[1], float(wrap_angle(np.arctan2(r[1, 0], r[0, 0])))])
+
+
+def _jacobian_rows(theta: float, src: Array) -> tuple[Array, Array]:
+    """d(R p + t)/d[x, y, theta] for each source point: (N,2,3)."""
+    c, s = np.cos(theta), np.sin(theta)
+    dr = np.stack([-s * src[:, 0] - c * src[:, 1], c * src[:, 0] - s * src[:, 1]], axis=-1)  # R' p
+    n = len(src)
+    j = np.zeros((n, 2, 3))
+    j[:, 0, 0] = 1.0
+    j[:, 1, 1] = 1.0
+    j[:, :, 2] = dr
+    return j, dr
+
+
+def icp(source: ArrayLike, target: ArrayLike, initial: ArrayLike | None = None,
+        config: ICPConfig | None = None) -> ICPResult:
+    """Align ``source`` points to ``target`` points; returns ``T_target_source`` (see the module docstring).
+
+    Shapes: source (N,2), target (M,2), initial (3,) or None (identity).
+    Non-finite points are dropped. Too few points or matches gives ``converged=False`` with the initial guess and
+    an infinite covariance, never an exception, so a SLAM loop can fall back to odometry.
+    """
+    cfg = config or ICPConfig()
+    src = np.asarray(source, dtype=np.float64).reshape(-1, 2)
+    tgt = np.asarray(target, dtype=np.float64).reshape(-1, 2)
+    src = src[np.all(np.isfinite(src), axis=1)]
+    tgt = tgt[np.all(np.isfinite(tgt), axis=1)]
+    t = np.zeros(3) if initial is None else np.asarray(initial, dtype=np.float64).copy()
+    fail = ICPResult(t, np.full((3, 3), np.inf), False, 0, 0, float("inf"), 0.0)
+    if len(src) < cfg.min_matches or len(tgt) < max(cfg.min_matches, cfg.normal_neighbours):
+        return fail
+    tree = cKDTree(tgt)
+    normals = estimate_normals(tgt, cfg.normal_neighbours, tree) if cfg.method == "point-to-line" else None
+
+    def match(tr: Array) -> tuple[NDArray[np.intp], NDArray[np.intp], Array]:
+        moved = se2.transform_points(tr, src)
+        d, j = tree.query(moved, distance_upper_bound=cfg.max_correspondence_m)
+        ok = np.flatnonzero(np.isfinite(d))
+        if cfg.trim_fraction < 1.0 and len(ok):
+            keep = max(int(np.ceil(cfg.trim_fraction * len(ok))), 1)
+            ok = ok[np.argsort(d[ok], kind="stable")[:keep]]
+        return ok, j[ok], moved
+
+    converged = False
+    it = 0
+    history: list[Array] = []
+    for it in range(1, cfg.max_iterations + 1):
+        ok, j, moved = match(t)
+        if len(ok) < cfg.min_matches:
+            return ICPResult(t, np.full((3, 3), np.inf), False, it, len(ok), float("inf"), len(ok) / len(src))
+        if normals is None:
+            dt = kabsch_2d(moved[ok], tgt[j])
+            t = se2.compose(dt, t)  # dt maps target-frame points to target-frame points: it goes on the left
+            step = np.abs(dt)
+        else:
+            n = normals[j]
+            _, dr = _jacobian_rows(float(t[2]), src[ok])
+            r = np.einsum("ni,ni->n", n, moved[ok] - tgt[j])
+            jac = np.column_stack([n[:, 0], n[:, 1], np.einsum("ni,ni->n", n, dr)])
+            # minimum-norm step: a degenerate direction (corridor axis) is left where the initial guess put it
+            delta = -np.linalg.lstsq(jac, r, rcond=1e-8)[0]
+            t = se2.retract(t, delta)
+            step = np.abs(delta)
+        # trimmed matching can flip between two correspondence sets forever (a limit cycle of ~1 mm): returning
+        # to a transform of the last few iterations is convergence as well
+        if np.all(step < cfg.tolerance) or any(np.all(np.abs(se2.local(h, t)) < cfg.tolerance) for h in history):
+            converged = True
+            break
+        history = [*history[-3:], t]
+    ok, j, moved = match(t)
+    if len(ok) < cfg.min_matches:
+        return ICPResult(t, np.full((3, 3), np.inf), False, it, len(ok), float("inf"), len(ok) / len(src))
+    jr, _ = _jacobian_rows(float(t[2]), src[ok])
+    if normals is None:
+        res = (moved[ok] - tgt[j]).ravel()
+        jac = jr.reshape(-1, 3)
+        dof = max(res.size - 3, 1)
+        rmse = float(np.sqrt(np.mean(np.sum((moved[ok] - tgt[j]) ** 2, axis=1))))
+    else:
+        n = normals[j]
+        res = np.einsum("ni,ni->n", n, moved[ok] - tgt[j])
+        jac = np.einsum("ni,nij->nj", n, jr)
+        dof = max(res.size - 3, 1)
+        rmse = float(np.sqrt(np.mean(res**2)))
+    h = jac.T @ jac
+    sigma2 = max(float(res @ res) / dof, 1e-12)
+    # eigen-inverse with a floor: an unobservable direction gets a huge (not NaN/inf) variance only along itself
+    lam, vec = np.linalg.eigh(h)
+    lam = np.maximum(lam, 1e-12 * max(float(lam[-1]), 1e-300))
+    cov = sigma2 * (vec / lam) @ vec.T
+    return ICPResult(t, 0.5 * (cov + cov.T), converged, it, len(ok), rmse,
+                     len(ok) / len(src))

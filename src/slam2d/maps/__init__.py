@@ -1,0 +1,1 @@
+"""Maps: landmark map, occupancy grid (log-odds), topological map."""
