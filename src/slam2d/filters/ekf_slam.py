@@ -465,7 +465,8 @@ class EKFConfig:
     removed (0: never)."""
     confirmed_max_misses: int = 5
     """the same rule for confirmed landmarks (0: never remove a confirmed landmark); removes e.g. landmarks made
-    from moving objects."""
+    from moving objects. Both miss counts are divided by the sensor's ``detection_prob``; with ``known``
+    association confirmed landmarks are never removed (their ids come from the source)."""
     view_margin_m: float = 0.5
     """"well inside the view" means predicted range <= max_range_m - view_margin_m (and inside the field of view)."""
     candidate_margin_m: float = 1.0
@@ -681,10 +682,13 @@ class EKFSLAM:
         cfg = self.config
         tentative = self._hits < cfg.confirm_after
         drop = np.zeros(self._ids.shape[0], dtype=bool)
+        # a sensor that reports a visible landmark only with probability p_d needs 1/p_d times more misses to say
+        # as much; a confirmed landmark with a source id (known association) is never spurious, so it stays
+        scale = 1.0 / max(cfg.sensor.detection_prob, 0.05)
         if cfg.tentative_max_misses:
-            drop |= tentative & (self._misses >= cfg.tentative_max_misses)
-        if cfg.confirmed_max_misses:
-            drop |= ~tentative & (self._misses >= cfg.confirmed_max_misses)
+            drop |= tentative & (self._misses >= np.ceil(cfg.tentative_max_misses * scale))
+        if cfg.confirmed_max_misses and cfg.association.method != "known":
+            drop |= ~tentative & (self._misses >= np.ceil(cfg.confirmed_max_misses * scale))
         if not np.any(drop):
             return
         self._mu, self._P = remove_landmarks(self._mu, self._P, np.flatnonzero(drop))
