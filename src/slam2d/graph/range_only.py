@@ -1,0 +1,163 @@
+"""Batch range-only graph SLAM (Plaza-style radio beacons): odometry factors plus range factors to beacons.
+
+Ranges carry no bearing, so a beacon cannot be placed from one sighting. Its first estimate comes from linear
+trilateration against the dead-reckoned path (differences of squared-range equations, solved by least squares);
+then the whole graph -- every pose and every beacon -- is optimised with Levenberg-Marquardt, with a robust kernel on
+the ranges because radio ranges have multipath outliers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slam2d.filters.base import Estimate
+from slam2d.geometry import se2
+from slam2d.graph.graph import FactorGraph, Values
+from slam2d.graph.optimizer import OptimizerConfig, Summary, optimize
+from slam2d.log import Log, Step
+from slam2d.models.motion import MotionNoise, odometry_covariance
+from slam2d.models.sensors import SensorConfig
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class RangeOnlyConfig:
+    """Range-only batch SLAM settings."""
+
+    motion: MotionNoise = field(default_factory=MotionNoise)
+    """odometry noise (the log's, by default)."""
+    range_std_m: float = 1.0
+    """range noise standard deviation (m)."""
+    range_bias_m: float = 0.0
+    """constant range offset subtracted from every measurement (m), e.g. a calibrated radio delay."""
+    robust_kernel: str = "huber"
+    """kernel on the range factors: none, huber, cauchy or dcs."""
+    robust_param: float = 1.5
+    """kernel parameter in units of the whitened error."""
+
+    def __post_init__(self) -> None:
+        if not self.range_std_m > 0:
+            raise ValueError(f"RangeOnlyConfig.range_std_m must be > 0 (got {self.range_std_m})")
+        if self.robust_kernel not in ("none", "huber", "cauchy", "dcs"):
+            raise ValueError(f"RangeOnlyConfig.robust_kernel must be none, huber, cauchy or dcs "
+                             f"(got {self.robust_kernel!r})")
+
+
+@dataclass(frozen=True)
+class RangeOnlyResult:
+    """Optimised trajectory (T+1,3), beacon positions (B,2) with their ids (B,), the dead-reckoned start, summary."""
+
+    trajectory: Array
+    beacons: Array
+    beacon_ids: NDArray[np.int64]
+    dead_reckoning: Array
+    summary: Summary
+
+
+def dead_reckon(initial_pose: Array, odometry: Array) -> Array:
+    """Compose the odometry (T,3) from the initial pose: (T+1,3)."""
+    poses = np.empty((len(odometry) + 1, 3))
+    poses[0] = initial_pose
+    for t in range(len(odometry)):
+        poses[t + 1] = se2.compose(poses[t], odometry[t])
+    return poses
+
+
+def trilaterate(positions: Array, ranges: Array) -> Array:
+    """Least-squares point from ranges to known positions (K>=3 not collinear): subtract the first equation."""
+    p, r = np.asarray(positions, dtype=np.float64), np.asarray(ranges, dtype=np.float64)
+    if len(p) < 3:
+        raise ValueError(f"trilateration needs >= 3 ranges (got {len(p)})")
+    a = 2 * (p[1:] - p[0])
+    b = np.sum(p[1:] ** 2, axis=1) - np.sum(p[0] ** 2) - r[1:] ** 2 + r[0] ** 2
+    sol, *_ = np.linalg.lstsq(a, b, rcond=None)
+    return np.asarray(sol, dtype=np.float64)
+
+
+def range_only_slam(log: Log, config: RangeOnlyConfig | None = None) -> RangeOnlyResult:
+    """Batch range-only SLAM over a whole log whose observations are ranges to identified beacons."""
+    return solve_range_only(log.initial_pose, log.odometry, log.obs_step, log.obs_id, log.obs_range_m,
+                            config or RangeOnlyConfig())
+
+
+def solve_range_only(initial_pose: Array, odometry: Array, obs_step: NDArray[np.int64], obs_id: NDArray[np.int64],
+                     obs_range: Array, cfg: RangeOnlyConfig) -> RangeOnlyResult:
+    """The batch problem from arrays. Shapes: (3,), (T,3), (K,), (K,), (K,)."""
+    known = obs_id >= 0
+    if not np.any(known):
+        raise ValueError("range-only SLAM needs observations with beacon ids (obs_id >= 0)")
+    dr = dead_reckon(initial_pose, odometry)
+    steps, ids = obs_step[known], obs_id[known]
+    ranges = obs_range[known] - cfg.range_bias_m
+    beacon_ids = np.unique(ids)
+    beacons = np.array([trilaterate(dr[steps[ids == b], :2], ranges[ids == b]) for b in beacon_ids])
+
+    graph = FactorGraph()
+    t = np.arange(1, len(odometry) + 1)
+    q = odometry_covariance(odometry, cfg.motion)
+    graph.add_between(t - 1, t, odometry, np.linalg.inv(q))
+    info = np.full((len(steps), 1, 1), 1.0 / cfg.range_std_m**2)
+    kernel = None if cfg.robust_kernel == "none" else cfg.robust_kernel
+    graph.add_range(steps, ids, ranges[:, None], info, robust=kernel, robust_param=cfg.robust_param)
+    values = Values(np.arange(len(odometry) + 1), dr, beacon_ids, beacons)
+    out, summary = optimize(graph, values, OptimizerConfig(method="lm", max_iterations=500))
+    order = np.argsort(out.point_keys)
+    return RangeOnlyResult(out.poses, out.points[order], out.point_keys[order].astype(np.int64), dr, summary)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class RangeOnlyGraphConfig:
+    """``--estimator range-only-graph``: dead reckoning while driving, the batch range-only optimum at the end."""
+
+    motion: MotionNoise = field(default_factory=MotionNoise)
+    """odometry noise (filled from the log's metadata)."""
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    """the range sensor (its ``range_std_m`` is used; filled from the log's metadata)."""
+    range_bias_m: float = 0.0
+    """constant range offset subtracted from every measurement (m)."""
+    robust_kernel: str = "huber"
+    """kernel on the range factors."""
+
+
+class RangeOnlyGraph:
+    """Estimator-protocol shell: records odometry and ranges, solves the batch problem in ``finalize``."""
+
+    def __init__(self, config: RangeOnlyGraphConfig | None = None) -> None:
+        self.config = config or RangeOnlyGraphConfig()
+        RangeOnlyConfig(range_std_m=self.config.sensor.range_std_m, robust_kernel=self.config.robust_kernel)
+
+    def reset(self, initial_pose: Array, *, rng: np.random.Generator) -> None:
+        self._start = np.asarray(initial_pose, dtype=np.float64).copy()
+        self._pose = self._start.copy()
+        self._odo: list[Array] = []
+        self._obs: list[tuple[int, NDArray[np.int64], Array]] = []
+        self._result: RangeOnlyResult | None = None
+
+    def step(self, step: Step) -> None:
+        self._pose = se2.compose(self._pose, step.odometry)
+        self._odo.append(np.asarray(step.odometry, dtype=np.float64))
+        if len(step.observations):
+            self._obs.append((step.index, step.observations.landmark_id, step.observations.range_m))
+        self._result = None
+
+    def finalize(self) -> None:
+        c = self.config
+        steps = np.concatenate([np.full(len(i), s) for s, i, _ in self._obs]).astype(np.int64) if self._obs else \
+            np.zeros(0, np.int64)
+        ids = np.concatenate([i for _, i, _ in self._obs]).astype(np.int64) if self._obs else np.zeros(0, np.int64)
+        rng_ = np.concatenate([r for _, _, r in self._obs]) if self._obs else np.zeros(0)
+        cfg = RangeOnlyConfig(motion=c.motion, range_std_m=c.sensor.range_std_m, range_bias_m=c.range_bias_m,
+                              robust_kernel=c.robust_kernel)
+        self._result = solve_range_only(self._start, np.array(self._odo).reshape(-1, 3), steps, ids, rng_, cfg)
+
+    def estimate(self) -> Estimate:
+        r = self._result
+        if r is None:
+            return Estimate(pose=self._pose.copy(), extras={"state_dim": 3})
+        return Estimate(pose=r.trajectory[-1].copy(), landmarks=r.beacons.copy(), landmark_ids=r.beacon_ids.copy(),
+                        extras={"trajectory": r.trajectory.copy(), "state_dim": int(r.trajectory.size + r.beacons.size),
+                                "iterations": r.summary.iterations})
