@@ -1,0 +1,101 @@
+"""Every back end on the staged real datasets: ATE (vs motion capture, or GPS for Victoria Park), map error against
+surveyed landmarks where they exist, runtime; a markdown table on stdout and one figure per dataset in docs/.
+
+Run: python benchmarks/real_data.py [--quick]   (needs ../shared/datasets; --quick: first 3000 steps of each log)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import slam2d
+from slam2d.eval.gps import gps_ate
+from slam2d.eval.mapping import map_error
+from slam2d.io.datasets import load_dataset
+
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+
+PLAN = [
+    # (dataset, robot, estimator, overrides)
+    *[("mrclam", r, e, o) for r in range(1, 6) for e, o in [
+        ("dead-reckoning", {}), ("ekf", {"association.method": "known"}), ("ekf", {"association.method": "jcbb"}),
+        ("fastslam2", {"association.method": "known"}), ("graph", {"association.method": "known",
+                                                                   "optimize_every": "50"})]],
+    ("victoria-park", 1, "dead-reckoning", {}),
+    ("victoria-park", 1, "ekf", {"association.method": "mahalanobis", "use_gps": "false"}),
+    ("plaza1", 1, "dead-reckoning", {}), ("plaza1", 1, "range-only-graph", {}),
+    ("plaza2", 1, "dead-reckoning", {}), ("plaza2", 1, "range-only-graph", {}),
+]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true")
+    args = ap.parse_args()
+    rows, trajs = [], {}
+    for name, robot, est, over in PLAN:
+        try:
+            log = load_dataset(name, None, robot, max_steps=3000 if args.quick else None)
+        except (FileNotFoundError, ValueError) as e:
+            print(f"skip {name}: {e}", file=sys.stderr)
+            continue
+        t0 = time.process_time()
+        res, rec = slam2d.run_named(est, log=log, seed=0, overrides=over)
+        cpu = time.process_time() - t0
+        row = {"dataset": name if name != "mrclam" else f"mrclam-7 robot {robot}",
+               "estimator": est + (f" ({over['association.method']})" if "association.method" in over else ""),
+               "ate_m": rec.get("ate_rmse_m", float("nan")), "landmarks": rec["landmarks_estimated"],
+               "cpu_s": cpu}
+        if log.true_poses is None and log.gps_step is not None:
+            row["ate_m"] = gps_ate(res.trajectory, log).rmse_m
+        if log.true_landmarks is not None and len(res.final.landmarks) and log.true_poses is not None:
+            a = slam2d.ate(res.trajectory, log.true_poses)
+            row["map_rmse_m"] = map_error(res.final.landmarks, log.true_landmarks, alignment=a.alignment,
+                                          max_distance_m=5.0).rmse_m
+        rows.append(row)
+        trajs.setdefault(row["dataset"], (log, {}))[1][row["estimator"]] = res
+        print(row, file=sys.stderr, flush=True)
+    print("| dataset | estimator | ATE (m) | map RMSE (m) | landmarks | CPU (s) |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['dataset']} | {r['estimator']} | {r['ate_m']:.3f} | {r.get('map_rmse_m', float('nan')):.3f} | "
+              f"{r['landmarks']} | {r['cpu_s']:.1f} |")
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return 0
+    DOCS.mkdir(exist_ok=True)
+    for ds, (log, results) in trajs.items():
+        if ds.startswith("mrclam") and not ds.endswith("robot 1"):
+            continue
+        fig, ax = plt.subplots(figsize=(6, 5))
+        if log.true_poses is not None:
+            ax.plot(*log.true_poses[:, :2].T, "k", lw=1, label="ground truth")
+        elif log.gps_xy is not None:
+            ax.plot(*log.gps_xy.T, "k.", ms=1, label="GPS")
+        if log.true_landmarks is not None:
+            ax.plot(*log.true_landmarks.T, "k+", ms=8, label="surveyed landmarks")
+        for label, res in results.items():
+            traj = res.trajectory
+            if log.true_poses is not None:
+                traj = slam2d.geometry.compose(slam2d.ate(res.trajectory, log.true_poses).alignment, traj)
+            ax.plot(*traj[:, :2].T, lw=0.8, label=label)
+        ax.set_aspect("equal")
+        ax.legend(fontsize=7)
+        ax.set_title(ds)
+        fig.tight_layout()
+        out = DOCS / f"real_{ds.split()[0]}.png"
+        fig.savefig(out, dpi=90)
+        plt.close(fig)
+        print(f"wrote {out}", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
