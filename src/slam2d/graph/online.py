@@ -48,6 +48,9 @@ from slam2d.models.sensors import (
 
 Array = NDArray[np.float64]
 
+#: added to every odometry covariance before inverting it (see ``GraphSLAM.step``)
+ODOMETRY_FLOOR_COV = np.diag([1e-8, 1e-8, 1e-8])
+
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class GraphSLAMConfig:
@@ -146,7 +149,9 @@ class GraphSLAM:
         ja, jb = odometry_predict_jacobians(prev, u)
         self.pose_cov = ja @ self.pose_cov @ ja.T + jb @ q @ jb.T
         self.values.add_poses([t], [pose])
-        self.graph.add_between([t - 1], [t], u[None], (np.linalg.inv(q) * cfg.odometry_info_scale)[None])
+        # a noise model without a floor makes a standstill "certain"; 0.1 mm / 0.1 mrad keeps the information finite
+        info = np.linalg.inv(q + ODOMETRY_FLOOR_COV) * cfg.odometry_info_scale
+        self.graph.add_between([t - 1], [t], u[None], info[None])
 
         obs = step.observations
         loop_added = False
