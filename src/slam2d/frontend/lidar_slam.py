@@ -3,7 +3,8 @@
 Pipeline (:func:`run_lidar_slam`):
 
 1. keyframes: a scan becomes a keyframe when the logged odometry moved ``keyframe_distance_m`` or
-   ``keyframe_angle_rad`` since the last keyframe;
+   ``keyframe_angle_rad`` since the last keyframe (with ``track_scans`` every scan in between is matched too, so
+   the keyframe's initial guess comes from tracking rather than from several scans of odometry);
 2. odometry: each keyframe is matched by point-to-line ICP against the points of the previous ``local_map_keyframes``
    keyframes (placed at their current estimates), starting from the previous estimate composed with the odometry
    increment; the result becomes a relative-pose edge with the ICP covariance (floored, see the config);
@@ -27,7 +28,6 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial import cKDTree
 
 from slam2d.config import check_positive
 from slam2d.frontend.icp import ICPConfig, icp
@@ -364,11 +364,3 @@ def relation_errors(stamps_s: ArrayLike, poses: ArrayLike, rel_stamps: ArrayLike
     d = se2.between(p[i1[ok]], p[i2[ok]])
     e = se2.between(rel[ok], d)
     return RelationErrors(np.hypot(e[:, 0], e[:, 1]), np.abs(wrap_angle(e[:, 2])), int((~ok).sum()))
-
-
-def scan_tree_overlap(a: Array, b: Array, radius: float) -> float:
-    """Fraction of points of ``a`` within ``radius`` of some point of ``b`` (a cheap overlap score). (K,2),(M,2)."""
-    if len(a) == 0 or len(b) == 0:
-        return 0.0
-    d, _ = cKDTree(b).query(a, distance_upper_bound=radius)
-    return float(np.mean(np.isfinite(d)))
