@@ -1,21 +1,29 @@
 # Two commands do all the set-up on a fresh machine:
-#   make run   - create .venv, install slam2d, and run the main job (the demo on built-in defaults)
+#   make run   - create .venv, install slam2d, and start the web lab (prints the URL; Ctrl+C stops it)
+#   make demo  - every estimator on the default scenario: a table and out/demo.png
 #   make test  - create .venv, install test dependencies, lint, type-check and run the whole test suite
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
 
-.PHONY: run test lint typecheck pytest bench clean
+.PHONY: run demo chromium test lint typecheck pytest bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --disable-pip-version-check -e ".[dev,viz]"
+	$(PY) -m pip install --quiet --disable-pip-version-check -e ".[dev,viz,web,cluster,crosscheck]"
 	rm -f $(VENV)/.installed-*
 	touch $(STAMP)
 
 run: $(STAMP)
+	$(VENV)/bin/slam2d lab
+
+demo: $(STAMP)
 	$(VENV)/bin/slam2d demo --out out
+
+# browser tests drive Debian's chromium (never `playwright install`); install it when missing (we run as root)
+chromium:
+	@command -v chromium >/dev/null || (apt-get update && apt-get install -y chromium) || echo "chromium could not be installed: browser tests will be skipped"
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests $(wildcard benchmarks)
@@ -23,7 +31,7 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(VENV)/bin/mypy
 
-pytest: $(STAMP)
+pytest: $(STAMP) chromium
 	$(PY) -m pytest
 
 test: lint typecheck pytest

@@ -1,5 +1,7 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import slam2d
 from slam2d.eval import align_se2, ate, rpe
@@ -75,3 +77,37 @@ def test_dead_reckoning_covariance_is_consistent():
 def test_unknown_names_list_the_valid_ones():
     with pytest.raises(ValueError, match="valid estimators.*dead-reckoning"):
         slam2d.run_named("nope")
+
+
+def test_run_association_scores_exact_case():
+    from slam2d.eval.association import run_association_scores
+
+    # estimator ids 7 and 9 stand for true landmarks 0 and 1; step 2 swaps one match
+    assign = [np.array([-1, -1]), np.array([7, 9]), np.array([9, 9, -2])]
+    truth = [np.array([0, 1]), np.array([0, 1]), np.array([0, 1, -1])]
+    s = run_association_scores(assign, truth)
+    assert s["assoc_precision"] == pytest.approx(3 / 4)  # 4 matches, the (9 for true 0) one is wrong
+    assert s["assoc_recall"] == pytest.approx(3 / 4)  # 4 matchable observations (steps 1, 2), 3 correct
+
+
+def test_run_cli_association_option_reaches_the_estimator(tmp_path):
+    import json
+
+    from slam2d.cli.main import main
+
+    out = tmp_path / "r.json"
+    assert main(["run", "--scenario", "room", "--estimator", "ekf", "--association", "mahalanobis",
+                 "--set", "steps=60", "--json", str(out)]) == 0
+    rec = json.loads(out.read_text())
+    assert rec["estimator_config"]["association"]["method"] == "mahalanobis"
+    assert 0.9 < rec["assoc_precision"] <= 1.0 and 0.9 < rec["assoc_recall"] <= 1.0
+@settings(max_examples=25)
+@given(tx=st.floats(-100, 100), ty=st.floats(-100, 100), th=st.floats(-np.pi, np.pi), seed=st.integers(0, 2**31))
+def test_ate_and_rpe_are_blind_to_any_rigid_motion_of_the_estimate(tx, ty, th, seed):
+    traj = np.cumsum(np.random.default_rng(seed).normal(size=(40, 3)), axis=0)
+    moved = compose(np.array([tx, ty, th]), traj)
+    assert ate(moved, traj).rmse_m < 1e-8
+    # the recovered alignment is the inverse of the applied motion
+    np.testing.assert_allclose(compose(ate(moved, traj).alignment, np.array([tx, ty, th])), [0, 0, 0], atol=1e-8)
+    r = rpe(moved, traj, delta=3)
+    assert r.trans_rmse_m < 1e-8 and r.rot_rmse_rad < 1e-8

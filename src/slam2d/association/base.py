@@ -45,20 +45,30 @@ class AssociationConfig:
     """when > 0 and descriptors exist on both sides, pairs farther apart than this (Euclidean) are not matched."""
     ransac_iterations: int = 100
     """ransac only: number of minimal-set hypotheses."""
+    ransac_min_pairs: int = 2
+    """ransac only: pairs per minimal set (2 pairs = 4 scalar measurements fix the 3-dof pose correction)."""
+    jcbb_max_nodes: int = 1_000_000
+    """jcbb only: stop the search after visiting this many nodes and return the best hypothesis found so far
+    (``AssociationResult.truncated`` is then True, so the caller knows the answer may not be optimal)."""
 
     def __post_init__(self) -> None:
         from slam2d.config import _coerce  # local: avoid a cycle at import time
 
         _coerce(self.method, Literal["known", "nn", "mahalanobis", "jcbb", "ransac"], "AssociationConfig.method")
         check_probability(self, "gate_probability", "new_landmark_probability", open_low=True)
-        if self.gate_probability >= 1.0 or self.new_landmark_probability >= 1.0:
-            raise ValueError("AssociationConfig gate probabilities must be < 1")
+        for name in ("gate_probability", "new_landmark_probability"):
+            if getattr(self, name) >= 1.0:
+                raise ValueError(f"AssociationConfig.{name} must be < 1 (got {getattr(self, name)})")
         if self.new_landmark_probability < self.gate_probability:
             raise ValueError("AssociationConfig.new_landmark_probability must be >= gate_probability")
         check_positive(self, "nn_max_distance")
         check_nonnegative(self, "descriptor_max_distance")
         if self.ransac_iterations < 1:
             raise ValueError(f"AssociationConfig.ransac_iterations must be >= 1 (got {self.ransac_iterations})")
+        if self.ransac_min_pairs < 1:
+            raise ValueError(f"AssociationConfig.ransac_min_pairs must be >= 1 (got {self.ransac_min_pairs})")
+        if self.jcbb_max_nodes < 1:
+            raise ValueError(f"AssociationConfig.jcbb_max_nodes must be >= 1 (got {self.jcbb_max_nodes})")
 
 
 @dataclass(frozen=True)
@@ -89,12 +99,22 @@ class AssociationResult:
     """Per observation: the candidate id it belongs to, or NEW / CLUTTER; with the statistics of the decision.
 
     Shapes: assignment (K,) int, d2 (K,) squared Mahalanobis distance to the assigned candidate (nan when none),
-    joint_nis = sum of d2 over matched observations evaluated jointly (with S_joint when given).
+    joint_nis = sum of d2 over matched observations evaluated jointly (with S_joint when given); nan when one
+    candidate is claimed by two observations (only ``nn`` and ``known`` can do that) since no joint Gaussian exists.
+    ``nodes``: search effort (jcbb: interpretation-tree nodes visited; ransac: hypotheses scored; else 0).
+    ``truncated``: jcbb stopped at ``jcbb_max_nodes`` and the answer may not be the optimum.
     """
 
     assignment: IntArray
     d2: Array
     joint_nis: float = 0.0
+    nodes: int = 0
+    truncated: bool = False
+
+    @property
+    def matched(self) -> NDArray[np.bool_]:
+        """(K,) True where the observation was assigned to a candidate."""
+        return self.assignment >= 0
 
 
 def associate_known(observations: Observations, candidates: Candidates) -> AssociationResult:

@@ -7,6 +7,7 @@ import importlib
 import sys
 from collections.abc import Sequence
 
+from slam2d.graph.linear import SolverError
 from slam2d.log import LogFormatError
 
 #: one module per sub-command; each defines ``register(subparsers)`` and sets ``func`` on its parser
@@ -14,6 +15,13 @@ COMMANDS = [
     "slam2d.cli.simulate",
     "slam2d.cli.run",
     "slam2d.cli.demo",
+    "slam2d.cli.experiment",
+    "slam2d.cli.sweep",
+    "slam2d.cli.report",
+    "slam2d.cli.datasets",
+    "slam2d.cli.optimize",
+    "slam2d.cli.lab",
+    "slam2d.cli.exercise",
     "slam2d.cli.lidar",
 ]
 
@@ -34,7 +42,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         return int(args.func(args) or 0)
-    except (ValueError, LogFormatError, FileNotFoundError) as e:
+    except (ValueError, LogFormatError, FileNotFoundError, SolverError) as e:
         print(f"slam2d {args.command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

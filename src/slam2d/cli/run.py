@@ -1,18 +1,24 @@
-"""``slam2d run``: one estimator over a simulated scenario or a saved log; prints a table, optionally JSON."""
+"""``slam2d run``: one estimator over a simulated scenario, a saved log or a real dataset; prints a table and JSON."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from typing import Any
 
+from slam2d.association import METHODS
 from slam2d.cli.common import add_set_argument, overrides_from, print_table, write_json
-from slam2d.lab.registry import estimator_names
+from slam2d.config import parse_set_args
+from slam2d.eval.gps import gps_ate
+from slam2d.io.datasets import DATASETS, load_dataset
+from slam2d.lab.registry import estimator_names, get_spec
 from slam2d.lab.runner import run_named
 from slam2d.log import Log
 from slam2d.sim.scenarios import SCENARIOS
 
-COLUMNS = ["estimator", "scenario", "seed", "steps", "ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_rad",
-           "final_pose_error_m", "landmarks_estimated", "step_ms_mean"]
+COLUMNS = ["estimator", "scenario", "robot", "seed", "steps", "ate_rmse_m", "gps_ate_rmse_m", "rpe_trans_rmse_m",
+           "rpe_rot_rmse_rad", "final_pose_error_m", "landmarks_estimated", "step_ms_mean", "assoc_precision",
+           "assoc_recall", "loops_accepted", "loops_false"]
 
 
 def register(sub: Any) -> None:
@@ -21,17 +27,69 @@ def register(sub: Any) -> None:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--scenario", default=None, help=f"one of: {', '.join(sorted(SCENARIOS))} (default room)")
     src.add_argument("--log", default=None, help="a log saved by 'slam2d simulate'")
+    src.add_argument("--dataset", default=None, help=f"a real dataset: {', '.join(DATASETS)} (see 'slam2d datasets')")
+    p.add_argument("--robot", type=int, default=1, help="MRCLAM robot 1..5 (default 1)")
+    p.add_argument("--dataset-path", default=None, metavar="DIR",
+                   help="folder in the dataset's format (default: the staged copy under the data directory)")
+    p.add_argument("--data-dir", default=None, help="directory holding the dataset folders (overrides SLAM2D_DATA)")
+    p.add_argument("--max-steps", type=int, default=None, help="use only the first N steps of the dataset")
+    p.add_argument("--max-time", type=float, default=None, metavar="S", help="use only the first S seconds")
+    p.add_argument("--dataset-opt", action="append", default=[], metavar="KEY=VALUE",
+                   help="a loader option (repeatable), e.g. dt_s=0.2 or others=keep (mrclam), max_range_m=30 "
+                        "(victoria-park)")
     p.add_argument("--estimator", default="dead-reckoning", help=f"one of: {', '.join(estimator_names())}")
     p.add_argument("--seed", type=int, default=0, help="seed for the simulation and the estimator (default 0)")
     p.add_argument("--json", default=None, metavar="OUT", help="write the flat result record as JSON")
+    p.add_argument("--association", default=None, choices=list(METHODS),
+                   help="data association method of the estimator (estimators that associate)")
+    p.add_argument("--no-loop-closure", action="store_true",
+                   help="switch the estimator's loop closure off (estimators that have one, e.g. graph)")
     add_set_argument(p)
     p.set_defaults(func=cmd)
 
 
+def _literal(text: str) -> Any:
+    """A --dataset-opt value: int, float, true/false, none, else the string itself."""
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    if low == "none":
+        return None
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return text
+
+
 def cmd(args: argparse.Namespace) -> int:
     log = Log.load(args.log) if args.log else None
-    _, record = run_named(args.estimator, args.scenario or "room", seed=args.seed, overrides=overrides_from(args),
-                          log=log, progress=None)
+    if args.dataset:
+        opts = {k: _literal(v) for k, v in parse_set_args(args.dataset_opt).items()}
+        log = load_dataset(args.dataset, args.dataset_path, args.robot, data_dir_override=args.data_dir,
+                           max_steps=args.max_steps, max_time_s=args.max_time, **opts)
+    elif args.dataset_path or args.max_steps or args.max_time or args.dataset_opt:
+        raise ValueError("--dataset-path, --dataset-opt, --max-steps and --max-time need --dataset NAME")
+    overrides: dict[str, str] = overrides_from(args)
+    if args.association:
+        overrides["estimator.association.method"] = args.association
+    if args.no_loop_closure:
+        overrides["estimator.loop_closure"] = "false"
+    if log is not None and log.metadata.get("gps_role") == "evaluation":
+        # GPS kept for scoring only: an estimator that can fuse GPS must not see it unless asked explicitly
+        fields = {f.name for f in dataclasses.fields(get_spec(args.estimator).config_cls)}
+        if "use_gps" in fields and not any(k.split(".")[-1] == "use_gps" for k in overrides):
+            overrides["estimator.use_gps"] = "false"
+    result, record = run_named(args.estimator, args.scenario or "room", seed=args.seed,
+                               overrides=overrides, log=log, progress=None)
+    if args.dataset and log is not None:
+        record["dataset"] = str(log.metadata.get("dataset", args.dataset))
+        record["dataset_path"] = str(log.metadata.get("dataset_path", ""))
+        if "robot" in log.metadata:
+            record["robot"] = int(log.metadata["robot"])
+        if log.gps_step is not None and log.true_poses is None and log.gps_step.size >= 2:
+            record["gps_ate_rmse_m"] = gps_ate(result.trajectory, log).rmse_m
     print_table([record], [c for c in COLUMNS if c in record])
     if args.json:
         write_json(args.json, record)

@@ -6,7 +6,8 @@
         est.step(step)
         snap = est.estimate()              # immutable snapshot
 
-History is kept by the runner (``slam2d.lab.runner``), not by estimators.
+History is kept by the runner (``slam2d.lab.runner``), not by estimators. An estimator may also offer
+``finalize()``: the runner calls it once after the last step (smoothers optimise to convergence there).
 """
 
 from __future__ import annotations

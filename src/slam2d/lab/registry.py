@@ -1,7 +1,8 @@
 """Estimators by name: the single place that maps a CLI/web/sweep name to a config class and an estimator class.
 
-``make_estimator(name, overrides, log_metadata)`` fills an estimator config's ``motion`` and ``sensor`` fields from
-the log's recorded parameters (so a filter assumes the noise the data was made with) and then applies overrides.
+``make_estimator(name, overrides, log_metadata)`` fills an estimator config's ``motion`` and ``sensor`` fields
+(and ``gps_std_m``) from the log's recorded parameters (so a filter assumes the noise the data was made with)
+and then applies overrides.
 """
 
 from __future__ import annotations
@@ -26,6 +27,9 @@ class EstimatorSpec:
 
 ESTIMATORS: dict[str, EstimatorSpec] = {}
 
+#: scalar sensor settings an estimator config inherits from the log's recorded scenario config, like ``sensor``
+INHERITED_SCALARS = ("gps_std_m",)
+
 
 def register_estimator(name: str, config_cls: type, factory: Callable[[Any], Estimator], description: str) -> None:
     """Make an estimator available by ``name`` to the runner, CLI, sweeps and web lab."""
@@ -35,16 +39,28 @@ def register_estimator(name: str, config_cls: type, factory: Callable[[Any], Est
 register_estimator("dead-reckoning", DeadReckoningConfig, DeadReckoning, "odometry integration only (baseline)")
 
 
+#: the library's own back ends: name -> (module, config class, estimator class, description); imported on first use
+#: so that filters/ and graph/ never import the lab (dependencies point one way)
+_BUILTIN: dict[str, tuple[str, str, str, str]] = {
+    "ekf": ("slam2d.filters.ekf_slam", "EKFConfig", "EKFSLAM",
+            "EKF-SLAM: joint Gaussian over pose and landmarks, O(N^2) update"),
+    "fastslam": ("slam2d.filters.fastslam", "FastSLAMConfig", "FastSLAM",
+                 "FastSLAM 1.0: particles over paths, per-particle landmark EKFs, motion-model proposal"),
+    "fastslam2": ("slam2d.filters.fastslam", "FastSLAM2Config", "FastSLAM",
+                  "FastSLAM 2.0: FastSLAM with the proposal conditioned on the observations"),
+    "graph": ("slam2d.graph.online", "GraphSLAMConfig", "GraphSLAM",
+              "online graph SLAM with place-recognition loop closures (sparse LM)"),
+}
+
+
 def _load_builtin() -> None:
-    """Import the modules that register further estimators (kept lazy to avoid import cycles)."""
+    """Register the built-in back ends that are not registered yet (lazy: importing them costs time)."""
     import importlib
 
-    for mod in _BUILTIN_MODULES:
-        importlib.import_module(mod)
-
-
-#: modules whose import registers more estimators; each back end adds its own line here
-_BUILTIN_MODULES: list[str] = []
+    for name, (module, cfg_name, cls_name, description) in _BUILTIN.items():
+        if name not in ESTIMATORS:
+            mod = importlib.import_module(module)
+            register_estimator(name, getattr(mod, cfg_name), getattr(mod, cls_name), description)
 
 
 def estimator_names() -> list[str]:
@@ -71,6 +87,10 @@ def make_config(name: str, overrides: Mapping[str, Any] | None = None,
         if key in fields and isinstance(meta.get(key), Mapping):
             known = set(data[key])
             data[key].update({k: v for k, v in meta[key].items() if k in known})
+    recorded = meta.get("config")
+    for key in INHERITED_SCALARS:
+        if key in fields and isinstance(recorded, Mapping) and recorded.get(key) is not None:
+            data[key] = recorded[key]
     cfg = from_dict(spec.config_cls, data)
     return with_overrides(cfg, overrides) if overrides else cfg
 

@@ -12,14 +12,22 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam2d.config import split_overrides, to_dict, with_overrides
+from slam2d.eval.association import run_association_scores
 from slam2d.eval.trajectory import ate, rpe
 from slam2d.filters.base import Estimate, Estimator
+from slam2d.geometry import se2
 from slam2d.lab.registry import get_spec, make_config
 from slam2d.log import Log
 from slam2d.sim.scenarios import ScenarioConfig
 from slam2d.sim.simulator import simulate, spawn_streams
 
 Array = NDArray[np.float64]
+
+#: an accepted loop counts as false (``loops_false``) when its two poses are truly farther apart than this (beyond
+#: twice the default sensor range nothing can be shared) ...
+LOOP_TRUE_DISTANCE_M = 16.0
+#: ... or when its relative-pose measurement is off the true relative pose by more than this
+LOOP_TRUE_ERROR_M = 1.0
 
 
 @dataclass(frozen=True)
@@ -77,6 +85,8 @@ def run(
     show = progress if progress is not None else (t > 2000 and sys.stderr.isatty())
     tick = _progress(t, show)
     snap = first
+    assigned: list[NDArray[np.int64]] = []
+    truth_ids: list[NDArray[np.int64]] = []
     for i, step in enumerate(log, start=1):
         t0 = time.perf_counter()
         estimator.step(step)
@@ -86,14 +96,24 @@ def run(
         covs.append(snap.pose_cov)
         if keep_snapshots:
             snaps.append(snap)
+        assoc = snap.extras.get("assoc")
+        if assoc is not None and len(assoc) == len(step.observations):
+            assigned.append(np.asarray(assoc, dtype=np.int64))
+            truth_ids.append(step.observations.landmark_id)
         if on_step is not None:
             on_step(i, snap)
         tick(i)
+    finalize = getattr(estimator, "finalize", None)
+    if callable(finalize):  # smoothers optimise to convergence once the data are in
+        finalize()
+        snap = estimator.estimate()
     traj = snap.extras.get("trajectory")
     trajectory = np.asarray(traj, dtype=np.float64) if traj is not None and len(traj) == t + 1 else poses
     pose_covs = None if any(c is None for c in covs) else np.asarray(covs)
     result = RunResult(poses, trajectory, pose_covs, step_s, snap, snaps if keep_snapshots else None)
     result.metrics.update(score(result, log))
+    if assigned and np.any(log.obs_id >= 0):  # the source knows ids: score the association
+        result.metrics.update(run_association_scores(assigned, truth_ids))
     return result
 
 
@@ -114,6 +134,15 @@ def score(result: RunResult, log: Log) -> dict[str, Any]:
             rpe_rot_rmse_rad=r.rot_rmse_rad,
             final_pose_error_m=float(np.hypot(*(result.trajectory[-1, :2] - log.true_poses[-1, :2]))),
         )
+        loops = result.final.extras.get("loops")
+        if loops is not None:
+            # false loop: the two poses are not truly near each other, or the constraint contradicts the truth
+            true = log.true_poses
+            acc = [(a, b, z) for a, b, ok, z in loops if ok]
+            far = [float(np.hypot(*(true[a, :2] - true[b, :2]))) > LOOP_TRUE_DISTANCE_M
+                   or float(np.hypot(*se2.local(se2.between(true[a], true[b]), z)[:2])) > LOOP_TRUE_ERROR_M
+                   for a, b, z in acc]
+            m.update(loops_accepted=len(acc), loops_false=int(sum(far)))
     return m
 
 

@@ -4,6 +4,9 @@
 * ``loop``: a 4 m wide corridor around a 60 x 40 m block: a 200 m loop that returns to its start.
 * ``warehouse``: identical shelf rows whose posts form repeating landmark patterns, with forklifts driving the aisles.
 * ``grid``: landmarks on a regular grid (any count) and a circular drive, for scaling studies.
+* ``scramble``: tight clusters of landmarks along a loop, neighbours 0.2-0.6 m apart (a few sensor standard
+  deviations, often inside one another's 99 % gate), so that a small pose error confuses nearest neighbour; the
+  data-association test bed.
 """
 
 from __future__ import annotations
@@ -190,6 +193,52 @@ def _grid(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
     return Layout(world, np.roll(route, -1, axis=0), start)
 
 
+def _cluster_points(rng: np.random.Generator, centre: Array, n: int, radius_m: float, min_sep_m: float,
+                    keep: Callable[[Array], NDArray[np.bool_]]) -> Array:
+    """``n`` points in a disc around ``centre``, pairwise at least ``min_sep_m`` apart and satisfying ``keep``
+    (greedy rejection)."""
+    pts: list[Array] = []
+    while len(pts) < n:
+        r = radius_m * np.sqrt(rng.random())
+        a = rng.uniform(-np.pi, np.pi)
+        p = centre + r * np.array([np.cos(a), np.sin(a)])
+        if keep(p[None])[0] and all(np.hypot(*(p - q)) >= min_sep_m for q in pts):
+            pts.append(p)
+        elif len(pts) and rng.random() < 0.002:  # the disc is full: start over (never loops forever)
+            pts = []
+    return np.array(pts)
+
+
+def _scramble(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
+    # a 16 x 10 m loop; clusters of 6 landmarks sit 2.5 m off the route, alternately inside and outside, at least
+    # 3 m from the corners; no landmark is closer than 1.5 m to the route, so range-bearing linearisation holds
+    route = np.array([[4.0, 4.0], [20.0, 4.0], [20.0, 14.0], [4.0, 14.0]])
+    lengths = np.array([16.0, 10.0, 16.0, 10.0])
+    n = int(cfg.landmarks or 48)
+    per_cluster, margin = 6, 3.0
+    n_clusters = int(np.ceil(n / per_cluster))
+    # clusters per leg in proportion to its usable length (largest remainder)
+    share = n_clusters * (lengths - 2 * margin) / np.sum(lengths - 2 * margin)
+    per_leg = np.floor(share).astype(int)
+    per_leg[np.argsort(share - per_leg)[::-1][: n_clusters - per_leg.sum()]] += 1
+    centres: list[Array] = []
+    for leg in range(4):
+        a, b = route[leg], route[(leg + 1) % 4]
+        d = (b - a) / lengths[leg]
+        normal = np.array([-d[1], d[0]])  # points into the loop
+        for k in range(per_leg[leg]):
+            along = margin + (k + 0.5) * (lengths[leg] - 2 * margin) / per_leg[leg]
+            side = 2.5 if len(centres) % 2 == 0 else -2.5
+            centres.append(a + d * along + normal * side)
+
+    def keep(p: Array) -> NDArray[np.bool_]:
+        return _dist_to_polyline(p, route) >= 1.5
+
+    lm = np.vstack([_cluster_points(rng, c, per_cluster, 0.7, 0.2, keep) for c in centres])[:n]
+    world = World(lm, np.arange(n), np.zeros((0, 4)), bounds=(0.0, 0.0, 24.0, 18.0))
+    return Layout(world, route, np.array([4.0, 4.0, 0.0]))
+
+
 SCENARIOS: dict[str, ScenarioSpec] = {
     "room": ScenarioSpec("room", "20 x 14 m room, ~30 landmarks, two laps", dict(steps=450, dt_s=0.2, speed_mps=1.0,
                                                                                   landmarks=30), _room),
@@ -199,6 +248,8 @@ SCENARIOS: dict[str, ScenarioSpec] = {
                               dict(steps=600, dt_s=0.2, speed_mps=1.2, moving_objects=3), _warehouse),
     "grid": ScenarioSpec("grid", "landmarks on a grid (any count), circular drive; for scaling",
                          dict(steps=300, dt_s=0.2, speed_mps=1.5, landmarks=100), _grid),
+    "scramble": ScenarioSpec("scramble", "clusters of landmarks closer than the association gates; data association",
+                             dict(steps=300, dt_s=0.2, speed_mps=1.0, landmarks=48), _scramble),
 }
 
 

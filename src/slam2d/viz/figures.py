@@ -39,3 +39,30 @@ def save_runs_figure(log: Log, results: Mapping[str, RunResult], path: str | Pat
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def save_breakit_figure(rows: list[dict[str, object]], path: str | Path) -> Path:
+    """Grouped bars: ATE per damage condition for each estimator (error bars = std over seeds)."""
+    import numpy as np
+
+    estimators = list(dict.fromkeys(str(r["estimator"]) for r in rows))
+    conditions = list(dict.fromkeys(str(r["condition"]) for r in rows))
+    fig, ax = plt.subplots(figsize=(8.0, 4.0))
+    width = 0.8 / max(1, len(conditions))
+    for k, cond in enumerate(conditions):
+        vals = [next(float(r["ate_mean_m"]) for r in rows if r["estimator"] == e and r["condition"] == cond)  # type: ignore[arg-type]
+                for e in estimators]
+        errs = [next(float(r["ate_std_m"]) for r in rows if r["estimator"] == e and r["condition"] == cond)  # type: ignore[arg-type]
+                for e in estimators]
+        ax.bar(np.arange(len(estimators)) + k * width, vals, width, yerr=errs, label=cond, capsize=2)
+    ax.set_xticks(np.arange(len(estimators)) + 0.4 - width / 2, estimators)
+    ax.set_ylabel("ATE (m)")
+    ax.set_yscale("log")
+    ax.legend(fontsize=8)
+    ax.set_title("break-it: what each damage does to each back end")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

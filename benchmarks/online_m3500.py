@@ -1,0 +1,136 @@
+"""Online pose-graph optimisation on M3500: one pose and its edges per step, slam2d vs GTSAM iSAM2.
+
+slam2d's online scheme (the one ``slam2d.graph.online`` uses): each step appends the new pose (initialised by
+composing its odometry edge) and its edges; when a step brings a loop closure, ``optimize_every`` steps have passed
+since the last solve, the reused optimiser runs ``--iterations`` warm-started Gauss-Newton iterations over the whole
+graph (the symbolic analysis is redone because the structure grew). At the end both systems are compared with the
+batch optimum of the same graph (g2o chi2, first pose held).
+
+Run: OPENBLAS_NUM_THREADS=1 python benchmarks/online_m3500.py [--optimize-every K] [--iterations I] [--limit N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from slam2d.geometry import se2
+from slam2d.graph.graph import FactorGraph, Values
+from slam2d.graph.optimizer import Optimizer, OptimizerConfig, optimize
+from slam2d.graph.problem import chi2
+from slam2d.io import read_graph
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "datasets" / "manhattan-m3500" / "input_M3500_g2o.g2o"
+
+
+def steps_of(block):
+    """Edges grouped by the newer pose they bring: dict t -> edge indices."""
+    newer = np.maximum(block.keys[0], block.keys[1])
+    order = np.argsort(newer, kind="stable")
+    bounds = np.searchsorted(newer[order], np.arange(newer.max() + 2))
+    return order, bounds
+
+
+def run_slam2d(block, n, every, iterations):
+    info = block.information
+    order, bounds = steps_of(block)
+    graph = FactorGraph()
+    values = Values(np.array([0]), np.zeros((1, 3)))
+    opt = Optimizer(graph, OptimizerConfig(method="gn", max_iterations=iterations))
+    times, since = [], 0
+    for t in range(1, n):
+        t0 = time.perf_counter()
+        idx = order[bounds[t]:bounds[t + 1]]
+        i, j = block.keys[0][idx], block.keys[1][idx]
+        odo = idx[(i == t - 1) & (j == t)]
+        prev = values.poses[-1]
+        values.add_poses([t], [se2.compose(prev, block.z[odo[0]]) if odo.size else prev])
+        graph.add_between(i, j, block.z[idx], info[idx])
+        since += 1
+        if np.any(np.abs(i - j) > 1) and since >= every:
+            values, _ = opt.optimize(values)
+            since = 0
+        times.append(time.perf_counter() - t0)
+    values, _ = optimize(graph, values, OptimizerConfig(method="lm"))
+    return np.array(times), chi2(graph, values)
+
+
+def run_isam2(block, n):
+    import gtsam
+
+    order, bounds = steps_of(block)
+    isam = gtsam.ISAM2(gtsam.ISAM2Params())
+    est = gtsam.Pose2(0, 0, 0)
+    times = []
+    first = gtsam.NonlinearFactorGraph()
+    first.add(gtsam.PriorFactorPose2(0, gtsam.Pose2(0, 0, 0), gtsam.noiseModel.Constrained.All(3)))
+    v0 = gtsam.Values()
+    v0.insert(0, est)
+    isam.update(first, v0)
+    for t in range(1, n):
+        t0 = time.perf_counter()
+        idx = order[bounds[t]:bounds[t + 1]]
+        g = gtsam.NonlinearFactorGraph()
+        vals = gtsam.Values()
+        prev = isam.calculateEstimatePose2(t - 1)
+        init = prev
+        for e in idx:
+            i, j = int(block.keys[0][e]), int(block.keys[1][e])
+            z = gtsam.Pose2(*block.z[e])
+            g.add(gtsam.BetweenFactorPose2(i, j, z, gtsam.noiseModel.Gaussian.Information(block.information[e])))
+            if i == t - 1 and j == t:
+                init = prev.compose(z)
+        vals.insert(t, init)
+        isam.update(g, vals)
+        times.append(time.perf_counter() - t0)
+    result = isam.calculateEstimate()
+    poses = np.array([[result.atPose2(k).x(), result.atPose2(k).y(), result.atPose2(k).theta()] for k in range(n)])
+    return np.array(times), poses
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--optimize-every", type=int, default=10)
+    ap.add_argument("--iterations", type=int, default=1)
+    ap.add_argument("--limit", type=int, default=0, help="use only the first N poses (0: all)")
+    args = ap.parse_args()
+    if not DATA.exists():
+        print(f"dataset not found: {DATA}")
+        return 0
+    gf = read_graph(DATA)
+    block = gf.graph.block("between")
+    n = int(args.limit or block.keys.max() + 1)
+    if args.limit:
+        keep = np.maximum(block.keys[0], block.keys[1]) < n
+        from dataclasses import replace
+
+        block = replace(block, keys=block.keys[:, keep], z=block.z[keep], sqrt_info=block.sqrt_info[keep],
+                        kernel=block.kernel[keep], kernel_param=block.kernel_param[keep])
+    batch_graph = FactorGraph()
+    batch_graph.add_between(block.keys[0], block.keys[1], block.z, block.information)
+    init = gf.values if not args.limit else Values(np.arange(n), gf.values.poses[:n])
+    _, summary = optimize(batch_graph, init, OptimizerConfig(method="lm"))
+    batch = summary.chi2_final
+    times, final = run_slam2d(block, n, args.optimize_every, args.iterations)
+    print(f"M3500 online, {n} poses, {block.size} edges; batch chi2 {batch:.4f}")
+    print(f"{'system':<28} {'mean ms':>8} {'p99 ms':>8} {'max ms':>8} {'final chi2':>12} {'vs batch':>9}")
+    label = f"slam2d (every {args.optimize_every}, {args.iterations} it)"
+    print(f"{label:<28} {1e3 * times.mean():8.2f} "
+          f"{1e3 * np.percentile(times, 99):8.2f} {1e3 * times.max():8.2f} {final:12.4f} {final / batch - 1:+9.2%}")
+    try:
+        it, poses = run_isam2(block, n)
+        vals = Values(np.arange(n), poses)
+        c = chi2(batch_graph, vals)
+        print(f"{'GTSAM iSAM2':<28} {1e3 * it.mean():8.2f} {1e3 * np.percentile(it, 99):8.2f} "
+              f"{1e3 * it.max():8.2f} {c:12.4f} {c / batch - 1:+9.2%}")
+    except ImportError:
+        print("GTSAM not installed: iSAM2 comparison skipped")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,753 @@
+"""FastSLAM 1.0 and 2.0: a particle filter over robot paths with one small EKF per landmark per particle.
+
+Every particle carries a pose, a log-weight and its own landmark map; all of them live in stacked arrays
+(:class:`ParticleSet`) and every update below acts on all particles at once. The only Python loop in a step runs
+over that step's few observations; each iteration is vectorised over particles (and, for maximum-likelihood
+association, over each particle's candidate landmarks).
+
+Versions (``FastSLAMConfig.version``):
+
+* **1.0** (Montemerlo et al. 2002; Probabilistic Robotics sec. 13.3): the pose is sampled from the motion model
+  (rot1-trans-rot2 noise, as the simulator draws it); the importance weight of a matched observation is
+  ``N(z; h(x, mu), H_m Sigma H_m^T + R)``.
+* **2.0** (Montemerlo et al. 2003; Probabilistic Robotics sec. 13.4): the pose is sampled from a Gaussian
+  proposal that also conditions on the step's observations. Starting from the linearised motion model
+  ``N(x_hat, V Q V^T)``, each matched observation updates the proposal with ``Q_z = H_m Sigma H_m^T + R`` as the
+  measurement noise (a Kalman update, algebraically equal to the information form given in both references); the
+  observation multiplies the weight by its predictive likelihood ``N(z; h(x_hat, mu), H_x P H_x^T + Q_z)``
+  (the textbook's ``L`` matrix), taken under the proposal *before* that observation, so the product over a
+  step's observations is the joint predictive likelihood. Then the pose is drawn from the final proposal and the
+  landmark EKFs are updated at the drawn pose.
+
+A new landmark multiplies the weight by ``new_landmark_likelihood`` (the textbook's ``p0``).
+
+Association (``FastSLAMConfig.association.method``): ``"known"`` uses the source's ids (``Observations.landmark_id``;
+negative ids -- clutter, moving objects -- are ignored) with one slot per id shared by all particles. **Any other
+method means per-particle maximum likelihood**: each particle takes, for each observation, the landmark of
+highest likelihood (the same likelihood that enters the weight), or starts a new landmark when that likelihood is
+below ``new_landmark_likelihood``. The gate probabilities of :class:`AssociationConfig` are not used here:
+per-particle ML is the textbook rule, and the threshold is the weight given to "new landmark".
+
+Existence counters (per-particle ML only; the map management of Probabilistic Robotics ch. 13): a landmark
+starts with evidence 2, gains 1 per sighting and loses 1 per step in which it should have been seen (predicted
+inside 90% of the sensor's range and field of view) but was not; at 0 its slot is freed. With known association
+nothing is pruned.
+
+Cost: FastSLAM 1.0 with known ids updates a scan's landmarks in one (M, k) batch; otherwise one vectorised
+iteration per observation. Per-particle ML looks once per step at every particle's whole map (a cheap O(M N)
+distance pass that keeps the landmarks within sensor range + ``candidate_margin_m``), then scores each observation
+exactly against the ``association_candidates`` nearest of them: O(M k) per step beyond that pass. Resampling
+copies all maps: O(M N).
+
+Weights are kept as logs, normalised by log-sum-exp; low-variance (systematic) resampling runs when
+``N_eff = 1 / sum(w^2)`` falls below ``resample_threshold * particles``; it copies every per-particle array by
+fancy indexing, so no two particles ever share memory. When every weight is zero (all log-weights -inf or NaN,
+e.g. after an absurd outlier), the filter resets to uniform weights and counts it in ``extras["weight_resets"]``.
+
+Snapshot: ``pose`` is the weighted mean of the particle poses (circular mean for the heading) computed before
+resampling; ``pose_cov`` the weighted sample covariance around it; the map (landmarks, covariances, ids) is the one
+of the particle with the highest weight before resampling (followed through resampling to one of its copies).
+Landmark ids are the source's ids for known association, the particle's slot numbers otherwise.
+``extras``: ``particles`` (M,3) and ``weights`` (M,) after this step, ``n_eff`` (before resampling),
+``resampled`` (bool), ``weight_resets`` (int, cumulative), ``state_dim`` (3 + 2 x landmarks of the shown particle,
+the size of one particle's state, comparable to EKF-SLAM's), ``assoc`` (per observation: the shown particle's
+landmark id (a new landmark's id included), or -1 for an ignored observation).
+
+References: M. Montemerlo, S. Thrun, D. Koller, B. Wegbreit, "FastSLAM 2.0: An improved particle filtering
+algorithm for simultaneous localization and mapping that provably converges", IJCAI 2003; S. Thrun, W. Burgard,
+D. Fox, Probabilistic Robotics, ch. 13; J. Carpenter, P. Clifford, P. Fearnhead, "Improved particle filter for
+nonlinear problems", 1999 (systematic resampling).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slam2d.association.base import AssociationConfig
+from slam2d.config import check_positive, check_probability
+from slam2d.filters.base import Estimate
+from slam2d.geometry import se2
+from slam2d.geometry.angles import angle_diff, wrap_angle
+from slam2d.log import Step
+from slam2d.models.motion import (
+    MotionNoise,
+    odometry_covariance,
+    odometry_to_rtr,
+    rtr_to_odometry,
+    rtr_variances,
+)
+from slam2d.models.sensors import (
+    SensorConfig,
+    range_bearing,
+    range_bearing_inverse,
+    range_bearing_inverse_jacobians,
+)
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+BoolArray = NDArray[np.bool_]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+#: evidence of a freshly created landmark (textbook counter 1, shifted by one so that 0 can mark an empty slot)
+_EVIDENCE_NEW = 2
+#: a landmark counts as "should have been seen" only inside this fraction of the sensor's range and field of view
+_MISS_MARGIN = 0.9
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# configuration
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class FastSLAMConfig:
+    """FastSLAM settings (both versions)."""
+
+    particles: int = 100
+    """number of particles M (>= 1)."""
+    version: int = 1
+    """1: proposal = motion model (FastSLAM 1.0); 2: proposal conditioned on the observations (FastSLAM 2.0)."""
+    resample_threshold: float = 0.5
+    """resample when N_eff < resample_threshold * particles (0: never resample, 1: resample every step)."""
+    new_landmark_likelihood: float = 1e-3
+    """p0, a density in measurement space (1/(m rad)): per-particle ML starts a new landmark when the best match is
+    less likely than this, and a new landmark multiplies the particle's weight by it."""
+    initial_capacity: int = 16
+    """landmark slots allocated per particle at reset; capacity doubles whenever it runs out."""
+    candidate_margin_m: float = 2.0
+    """per-particle ML only: landmarks farther than (largest observed range + this) from a particle are not
+    considered as matches (m); keeps the per-observation cost proportional to the landmarks in view."""
+    association_candidates: int = 4
+    """per-particle ML only: the exact likelihood is evaluated for this many landmarks per particle and observation,
+    those nearest (Euclidean, world frame) to where the particle places the observation."""
+    motion: MotionNoise = field(default_factory=MotionNoise)
+    """odometry noise assumed by the filter (filled from the log's metadata by the registry)."""
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    """range-bearing sensor assumed by the filter (filled from the log's metadata by the registry)."""
+    association: AssociationConfig = field(default_factory=AssociationConfig)
+    """method "known" uses the source's ids; any other method means per-particle maximum likelihood."""
+
+    def __post_init__(self) -> None:
+        if isinstance(self.particles, bool) or not isinstance(self.particles, int) or self.particles < 1:
+            raise ValueError(f"{type(self).__name__}.particles must be an integer >= 1 (got {self.particles!r})")
+        if self.version not in (1, 2):
+            raise ValueError(f"{type(self).__name__}.version must be 1 or 2 (got {self.version!r})")
+        check_probability(self, "resample_threshold")
+        check_positive(self, "new_landmark_likelihood", "candidate_margin_m")
+        if not isinstance(self.association_candidates, int) or self.association_candidates < 1:
+            raise ValueError(f"{type(self).__name__}.association_candidates must be an integer >= 1 "
+                             f"(got {self.association_candidates!r})")
+        if not isinstance(self.initial_capacity, int) or self.initial_capacity < 1:
+            raise ValueError(f"{type(self).__name__}.initial_capacity must be an integer >= 1 "
+                             f"(got {self.initial_capacity!r})")
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class FastSLAM2Config(FastSLAMConfig):
+    """The same settings with FastSLAM 2.0 as the default (registered as ``fastslam2``)."""
+
+    version: int = 2
+    """1: proposal = motion model (FastSLAM 1.0); 2: proposal conditioned on the observations (FastSLAM 2.0)."""
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the particle set
+
+
+@dataclass
+class ParticleSet:
+    """All particles as stacked arrays (mutated in place by the filter; :meth:`select` returns independent copies).
+
+    Shapes: poses (M,3), log_weights (M,), lm_mean (M,K,2), lm_cov (M,K,2,2), lm_evidence (M,K) int (0: empty slot;
+    otherwise the existence counter), lm_count (M,) int (per-particle ML: the next free slot; slots are appended).
+    K is the capacity, not the number of landmarks.
+    """
+
+    poses: Array
+    log_weights: Array
+    lm_mean: Array
+    lm_cov: Array
+    lm_evidence: IntArray
+    lm_count: IntArray
+
+    @staticmethod
+    def create(initial_pose: Array, particles: int, capacity: int) -> ParticleSet:
+        """``particles`` copies of ``initial_pose`` with uniform weights and empty maps."""
+        if particles < 1:
+            raise ValueError(f"FastSLAM needs at least one particle (got {particles})")
+        m, k = int(particles), int(capacity)
+        return ParticleSet(
+            poses=np.tile(np.asarray(initial_pose, dtype=np.float64), (m, 1)),
+            log_weights=np.full(m, -math.log(m)),
+            lm_mean=np.zeros((m, k, 2)),
+            lm_cov=np.zeros((m, k, 2, 2)),
+            lm_evidence=np.zeros((m, k), dtype=np.int64),
+            lm_count=np.zeros(m, dtype=np.int64),
+        )
+
+    @property
+    def size(self) -> int:
+        return int(self.poses.shape[0])
+
+    @property
+    def capacity(self) -> int:
+        return int(self.lm_mean.shape[1])
+
+    def select(self, index: IntArray) -> ParticleSet:
+        """Particles ``index`` (M',), each a fresh copy: fancy indexing copies, so no two particles share a map."""
+        idx = np.asarray(index, dtype=np.int64)
+        return ParticleSet(
+            poses=self.poses[idx],
+            log_weights=self.log_weights[idx],
+            lm_mean=self.lm_mean[idx],
+            lm_cov=self.lm_cov[idx],
+            lm_evidence=self.lm_evidence[idx],
+            lm_count=self.lm_count[idx],
+        )
+
+    def ensure_capacity(self, needed: int) -> None:
+        """Grow the landmark axis to at least ``needed`` slots, at least doubling (amortised O(1) per landmark)."""
+        k = self.capacity
+        if needed <= k:
+            return
+        new_k = max(int(needed), 2 * k)
+        m = self.size
+
+        def grow(a: np.ndarray) -> np.ndarray:
+            out = np.zeros((m, new_k, *a.shape[2:]), dtype=a.dtype)
+            out[:, :k] = a
+            return out
+
+        self.lm_mean = grow(self.lm_mean)
+        self.lm_cov = grow(self.lm_cov)
+        self.lm_evidence = grow(self.lm_evidence)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# pure kernels (all batched over a leading particle axis)
+
+
+def _inv2(a: Array) -> tuple[Array, Array]:
+    """Inverse and determinant of stacked 2x2 matrices. Shapes: (...,2,2) -> (...,2,2), (...)."""
+    det = a[..., 0, 0] * a[..., 1, 1] - a[..., 0, 1] * a[..., 1, 0]
+    inv = np.empty_like(a)
+    inv[..., 0, 0] = a[..., 1, 1]
+    inv[..., 1, 1] = a[..., 0, 0]
+    inv[..., 0, 1] = -a[..., 0, 1]
+    inv[..., 1, 0] = -a[..., 1, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv /= det[..., None, None]
+    return inv, det
+
+
+def gaussian_logpdf2(nu: Array, s: Array) -> Array:
+    """log N(nu; 0, S) for stacked 2-vectors. Shapes: (...,2),(...,2,2) -> (...). Non-PD S gives -inf."""
+    s_inv, det = _inv2(s)
+    d2 = np.einsum("...i,...ij,...j->...", nu, s_inv, nu)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = -0.5 * d2 - _LOG_2PI - 0.5 * np.log(det)
+    return np.where((det > 0) & np.isfinite(out), out, -np.inf)
+
+
+def _innovation(z: Array, z_hat: Array) -> Array:
+    nu = z - z_hat
+    nu[..., 1] = angle_diff(z[..., 1], z_hat[..., 1])
+    return nu
+
+
+def sample_motion(poses: Array, u: Array, noise: MotionNoise, rng: np.random.Generator) -> Array:
+    """Draw each particle's new pose from the odometry model (noise in rot1-trans-rot2 space, as the simulator).
+
+    Shapes: poses (M,3), u (3,) -> (M,3). References: Probabilistic Robotics table 5.6.
+    """
+    m = odometry_to_rtr(u)
+    std = np.sqrt(rtr_variances(m, noise))
+    draws = m + std * rng.standard_normal((poses.shape[0], 3))
+    return se2.compose(poses, rtr_to_odometry(draws))
+
+
+def motion_gaussian(poses: Array, u: Array, noise: MotionNoise) -> tuple[Array, Array]:
+    """Linearised motion model per particle: mean ``x (+) u`` and covariance ``V Q V^T`` (V = d(x (+) u)/du).
+
+    Shapes: poses (M,3), u (3,) -> (M,3), (M,3,3).
+    """
+    mean = se2.compose(poses, u)
+    _, v = se2.compose_jacobians(poses, np.broadcast_to(u, poses.shape))
+    q = odometry_covariance(u, noise)
+    cov = v @ q @ np.swapaxes(v, -1, -2)
+    return mean, 0.5 * (cov + np.swapaxes(cov, -1, -2))
+
+
+def _observe(poses: Array, lm: Array) -> tuple[Array, Array, Array, Array, Array, Array]:
+    """Predicted range, bearing and the landmark Jacobian H_m entries, element-wise (fast for small batches).
+
+    Returns (range, bearing (unwrapped), h00, h01, h10, h11) with ``H_m = [[h00, h01], [h10, h11]]``; the pose
+    Jacobian is ``H_x = [-H_m | (0, -1)^T]`` (as ``range_bearing_jacobians``, which the FD test checks).
+    Shapes: poses (...,3), lm (...,2) -> six (...) arrays.
+    """
+    dx, dy = lm[..., 0] - poses[..., 0], lm[..., 1] - poses[..., 1]
+    # a floor keeps padded/empty candidate slots (means at the origin) and a landmark on the robot finite
+    q = np.maximum(dx * dx + dy * dy, 1e-18)
+    rng = np.sqrt(q)
+    bearing = np.arctan2(dy, dx) - poses[..., 2]
+    return rng, bearing, dx / rng, dy / rng, -dy / q, dx / q
+
+
+def _congruence2(h00: Array, h01: Array, h10: Array, h11: Array, s00: Array, s01: Array,
+                 s11: Array) -> tuple[Array, Array, Array, Array, Array, Array, Array]:
+    """``H S H^T`` for symmetric 2x2 S, element-wise; also returns ``T = H S`` (t00, t01, t10, t11)."""
+    t00, t01 = h00 * s00 + h01 * s01, h00 * s01 + h01 * s11
+    t10, t11 = h10 * s00 + h11 * s01, h10 * s01 + h11 * s11
+    return t00 * h00 + t01 * h01, t00 * h10 + t01 * h11, t10 * h10 + t11 * h11, t00, t01, t10, t11
+
+
+def _logpdf2_sym(n0: Array, n1: Array, s00: Array, s01: Array, s11: Array) -> Array:
+    """log N([n0, n1]; 0, [[s00, s01], [s01, s11]]) element-wise; -inf where S is not positive definite."""
+    det = s00 * s11 - s01 * s01
+    # an absurd outlier may overflow d2 to inf: that is a zero likelihood, handled by normalize_log_weights
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        d2 = (s11 * n0 * n0 - 2.0 * s01 * n0 * n1 + s00 * n1 * n1) / det
+        out = -0.5 * d2 - _LOG_2PI - 0.5 * np.log(det)
+    return np.where((det > 0) & (s00 > 0) & np.isfinite(out), out, -np.inf)
+
+
+def landmark_init(poses: Array, z: Array, r: Array) -> tuple[Array, Array]:
+    """New landmark EKF from one observation: mean ``g^-1(x, z)``, covariance ``G_z R G_z^T``.
+
+    Shapes: poses (M,3), z (2,) or (M,2), r (2,2) -> (M,2), (M,2,2). References: Probabilistic Robotics sec. 13.3.
+    """
+    zz = np.broadcast_to(z, (*poses.shape[:-1], 2))
+    mean = range_bearing_inverse(poses, zz)
+    _, gz = range_bearing_inverse_jacobians(poses, zz)
+    return mean, gz @ r @ np.swapaxes(gz, -1, -2)
+
+
+def landmark_update(poses: Array, z: Array, mean: Array, cov: Array, r: Array) -> tuple[Array, Array, Array]:
+    """EKF update of each particle's landmark with observation ``z`` taken at a known pose.
+
+    ``S = H Sigma H^T + R``, ``K = Sigma H^T S^-1``, ``mu' = mu + K nu``, ``Sigma' = Sigma - K S K^T``.
+    Returns (new mean, new cov, log N(z; h(x, mu), S)) -- the last is the FastSLAM 1.0 importance weight.
+    Written element-wise over the 2x2 blocks because numpy's stacked matmul is slow for tiny matrices.
+    Shapes: poses (M,3), z (2,), mean (M,2), cov (M,2,2), r (2,2) -> (M,2), (M,2,2), (M,).
+    References: Probabilistic Robotics sec. 13.3.
+    """
+    rng, bearing, h00, h01, h10, h11 = _observe(poses, mean)
+    s00, s01, s11 = cov[..., 0, 0], 0.5 * (cov[..., 0, 1] + cov[..., 1, 0]), cov[..., 1, 1]
+    a00, a01, a11, t00, t01, t10, t11 = _congruence2(h00, h01, h10, h11, s00, s01, s11)
+    a00, a01, a11 = a00 + r[0, 0], a01 + 0.5 * (r[0, 1] + r[1, 0]), a11 + r[1, 1]
+    det = a00 * a11 - a01 * a01
+    i00, i01, i11 = a11 / det, -a01 / det, a00 / det
+    # U = S^-1 T; K = T^T S^-1 = U^T; Sigma' = Sigma - T^T S^-1 T = Sigma - T^T U
+    u00, u01 = i00 * t00 + i01 * t10, i00 * t01 + i01 * t11
+    u10, u11 = i01 * t00 + i11 * t10, i01 * t01 + i11 * t11
+    n0 = z[..., 0] - rng
+    n1 = wrap_angle(z[..., 1] - bearing)
+    new_mean = np.stack([mean[..., 0] + u00 * n0 + u10 * n1, mean[..., 1] + u01 * n0 + u11 * n1], axis=-1)
+    c00 = s00 - (t00 * u00 + t10 * u10)
+    c01 = s01 - (t00 * u01 + t10 * u11)
+    c11 = s11 - (t01 * u01 + t11 * u11)
+    new_cov = np.stack([np.stack([c00, c01], axis=-1), np.stack([c01, c11], axis=-1)], axis=-2)
+    return new_mean, new_cov, _logpdf2_sym(n0, n1, a00, a01, a11)
+
+
+def proposal_update(
+    pose_mean: Array, pose_cov: Array, z: Array, lm_mean: Array, lm_cov: Array, r: Array
+) -> tuple[Array, Array, Array]:
+    """FastSLAM 2.0: condition each particle's Gaussian pose proposal on one observation of a known landmark.
+
+    With ``Q_z = H_m Sigma H_m^T + R`` (landmark uncertainty plus sensor noise), the proposal is updated like a
+    Kalman filter whose state is the pose: ``S = H_x P H_x^T + Q_z``, ``K = P H_x^T S^-1``,
+    ``x' = x_hat + K nu``, ``P' = P - K S K^T``; this equals the information form
+    ``P' = (H_x^T Q_z^-1 H_x + P^-1)^-1``, ``x' = x_hat + P' H_x^T Q_z^-1 nu`` of Montemerlo et al. 2003 and
+    Probabilistic Robotics sec. 13.4, without inverting P. The returned log-likelihood
+    ``log N(z; h(x_hat, mu), S)`` is the observation's importance-weight factor.
+
+    Shapes: pose_mean (M,3), pose_cov (M,3,3), z (2,), lm_mean (M,2), lm_cov (M,2,2), r (2,2)
+    -> (M,3), (M,3,3), (M,).
+    """
+    rng, bearing, h00, h01, h10, h11 = _observe(pose_mean, lm_mean)
+    s00, s01, s11 = lm_cov[..., 0, 0], 0.5 * (lm_cov[..., 0, 1] + lm_cov[..., 1, 0]), lm_cov[..., 1, 1]
+    q00, q01, q11, *_ = _congruence2(h00, h01, h10, h11, s00, s01, s11)
+    q00, q01, q11 = q00 + r[0, 0], q01 + 0.5 * (r[0, 1] + r[1, 0]), q11 + r[1, 1]
+    # H_x = [[-h00, -h01, 0], [-h10, -h11, -1]]; columns of C = P H_x^T, element-wise (3 rows each)
+    p = pose_cov
+    c0 = -(p[..., :, 0] * h00[..., None] + p[..., :, 1] * h01[..., None])
+    c1 = -(p[..., :, 0] * h10[..., None] + p[..., :, 1] * h11[..., None] + p[..., :, 2])
+    a00 = -(h00 * c0[..., 0] + h01 * c0[..., 1]) + q00
+    a01 = -(h00 * c1[..., 0] + h01 * c1[..., 1]) + q01
+    a11 = -(h10 * c1[..., 0] + h11 * c1[..., 1] + c1[..., 2]) + q11
+    det = a00 * a11 - a01 * a01
+    i00, i01, i11 = a11 / det, -a01 / det, a00 / det
+    k0 = c0 * i00[..., None] + c1 * i01[..., None]  # K = C S^-1, column 0 (...,3)
+    k1 = c0 * i01[..., None] + c1 * i11[..., None]
+    n0 = z[..., 0] - rng
+    n1 = wrap_angle(z[..., 1] - bearing)
+    new_mean = pose_mean + k0 * n0[..., None] + k1 * n1[..., None]
+    new_mean[..., 2] = wrap_angle(new_mean[..., 2])
+    # P' = P - K S K^T = P - C K^T
+    new_cov = p - (c0[..., :, None] * k0[..., None, :] + c1[..., :, None] * k1[..., None, :])
+    return new_mean, 0.5 * (new_cov + np.swapaxes(new_cov, -1, -2)), _logpdf2_sym(n0, n1, a00, a01, a11)
+
+
+def sample_gaussian_poses(mean: Array, cov: Array, rng: np.random.Generator) -> Array:
+    """One draw per particle from N(mean, cov). Shapes: (M,3),(M,3,3) -> (M,3)."""
+    # a tiny jitter keeps Cholesky alive when a proposal is (numerically) singular, e.g. zero motion noise
+    chol = np.linalg.cholesky(cov + 1e-12 * np.eye(3))
+    x = mean + np.einsum("...ij,...j->...i", chol, rng.standard_normal(mean.shape))
+    x[..., 2] = wrap_angle(x[..., 2])
+    return x
+
+
+def normalize_log_weights(log_weights: Array) -> tuple[Array, bool]:
+    """Log-sum-exp normalisation. NaN counts as -inf. Returns (normalised log-weights, degenerate).
+
+    ``degenerate`` is True when every weight is zero (no finite log-weight); the weights are then reset to uniform,
+    the documented recovery. Shapes: (M,) -> (M,).
+    """
+    lw = np.where(np.isnan(log_weights), -np.inf, log_weights)
+    top = np.max(lw)
+    if not np.isfinite(top):
+        # +inf also lands here: a weight that dominates infinitely carries no usable information either
+        return np.full(lw.shape, -math.log(lw.shape[0])), True
+    lse = top + math.log(float(np.sum(np.exp(lw - top))))
+    return lw - lse, False
+
+
+def effective_sample_size(weights: Array) -> float:
+    """``1 / sum(w^2)`` of normalised weights (M,)."""
+    return float(1.0 / np.sum(weights * weights))
+
+
+def systematic_resample(weights: Array, rng: np.random.Generator) -> IntArray:
+    """Low-variance (systematic) resampling: one uniform offset, M evenly spaced pointers into the weights' CDF.
+
+    Particle i is drawn floor(M w_i) or ceil(M w_i) times. Shapes: (M,) -> (M,) indices, sorted.
+    References: Probabilistic Robotics table 4.4.
+    """
+    m = weights.shape[0]
+    cdf = np.cumsum(weights)
+    cdf /= cdf[-1]  # the last pointer must never run past the end because of rounding
+    pointers = (rng.random() + np.arange(m)) / m
+    return np.minimum(np.searchsorted(cdf, pointers, side="right"), m - 1).astype(np.int64)
+
+
+def weighted_pose_stats(poses: Array, weights: Array) -> tuple[Array, Array]:
+    """Weighted mean pose (circular mean for theta) and weighted sample covariance. (M,3),(M,) -> (3,),(3,3)."""
+    xy = weights @ poses[:, :2]
+    th = math.atan2(float(weights @ np.sin(poses[:, 2])), float(weights @ np.cos(poses[:, 2])))
+    mean = np.array([xy[0], xy[1], float(wrap_angle(th))])
+    d = se2.local(mean, poses)
+    cov = np.einsum("m,mi,mj->ij", weights, d, d)
+    return mean, 0.5 * (cov + cov.T)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# the estimator
+
+
+class FastSLAM:
+    """FastSLAM 1.0 / 2.0 over range-bearing landmarks (implements the estimator protocol)."""
+
+    def __init__(self, config: FastSLAMConfig | None = None) -> None:
+        self.config = config or FastSLAMConfig()
+        self._p: ParticleSet | None = None
+        self._rng = np.random.default_rng(0)
+        self._id_to_slot: dict[int, int] = {}
+        self._slot_ids: list[int] = []
+        self._best = 0
+        self._pose = np.zeros(3)
+        self._pose_cov = np.zeros((3, 3))
+        self._n_eff = 0.0
+        self._resampled = False
+        self._weight_resets = 0
+        self._assoc = np.zeros(0, dtype=np.int64)
+        self._r = self.config.sensor.covariance
+        #: FastSLAM 1.0 with known ids updates a scan's landmarks in one batch (tests switch it off to compare)
+        self._batch_known = True
+
+    @property
+    def known(self) -> bool:
+        return self.config.association.method == "known"
+
+    @property
+    def particles(self) -> ParticleSet:
+        """The current particle set (the live arrays; copy before mutating)."""
+        if self._p is None:
+            raise RuntimeError("FastSLAM.reset() must be called before use")
+        return self._p
+
+    def reset(self, initial_pose: Array, *, rng: np.random.Generator) -> None:
+        pose = np.asarray(initial_pose, dtype=np.float64)
+        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+            raise ValueError(f"initial_pose must be a finite (3,) array (got {initial_pose!r})")
+        self._p = ParticleSet.create(pose, self.config.particles, self.config.initial_capacity)
+        self._rng = rng
+        self._r = self.config.sensor.covariance
+        self._id_to_slot, self._slot_ids = {}, []
+        self._best = 0
+        self._pose, self._pose_cov = pose.copy(), np.zeros((3, 3))
+        self._n_eff = float(self.config.particles)
+        self._resampled = False
+        self._weight_resets = 0
+        self._assoc = np.zeros(0, dtype=np.int64)
+
+    # -- association ---------------------------------------------------------------------------------------------
+
+    def _slot_for_id(self, lm_id: int) -> int:
+        slot = self._id_to_slot.get(lm_id)
+        if slot is None:
+            slot = len(self._slot_ids)
+            self._id_to_slot[lm_id] = slot
+            self._slot_ids.append(lm_id)
+            self.particles.ensure_capacity(slot + 1)
+        return slot
+
+    def _candidates(self, poses: Array, radius: float) -> tuple[IntArray, BoolArray]:
+        """Per particle, the occupied slots within ``radius`` of its pose, left-packed. (M,3) -> (M,V), (M,V)."""
+        p = self.particles
+        used = int(p.lm_count.max())  # per-particle ML appends slots: nothing lives beyond the longest map
+        dx = p.lm_mean[:, :used, 0] - poses[:, 0:1]
+        dy = p.lm_mean[:, :used, 1] - poses[:, 1:2]
+        near = (p.lm_evidence[:, :used] > 0) & (dx * dx + dy * dy <= radius * radius)
+        rows, cols = np.nonzero(near)
+        counts = np.bincount(rows, minlength=p.size)
+        v = int(counts.max()) if counts.size else 0
+        cand = np.zeros((p.size, v), dtype=np.int64)
+        valid = np.zeros((p.size, v), dtype=bool)
+        if v:
+            start = np.cumsum(counts) - counts
+            pos = np.arange(rows.size) - start[rows]
+            cand[rows, pos] = cols
+            valid[rows, pos] = True
+        return cand, valid
+
+    def _ml_associate(self, poses: Array, pose_cov: Array | None, z: Array, cand: IntArray,
+                      valid: BoolArray) -> tuple[IntArray, BoolArray]:
+        """Per particle, the candidate slot of highest likelihood and whether to start a new landmark instead.
+
+        The likelihood is the one that enters the weight: N(z; h, H_m Sigma H_m^T + R) for 1.0, plus the pose
+        term H_x P H_x^T for 2.0. Shapes: poses (M,3), pose_cov (M,3,3) or None, z (2,), cand/valid (M,V).
+        """
+        p = self.particles
+        m = p.size
+        log_p0 = math.log(self.config.new_landmark_likelihood)
+        if cand.shape[1] == 0:
+            return np.zeros(m, dtype=np.int64), np.ones(m, dtype=bool)
+        rows = np.arange(m)[:, None]
+        n_near = self.config.association_candidates
+        if cand.shape[1] > n_near:
+            # cheap pre-selection: the n_near landmarks nearest (Euclidean, world frame) to where this particle
+            # places the observation; the exact likelihood is then evaluated for those only
+            a = poses[:, 2] + z[1]
+            ox, oy = poses[:, 0] + z[0] * np.cos(a), poses[:, 1] + z[0] * np.sin(a)
+            mu_all = p.lm_mean[rows, cand]
+            d2 = np.where(valid, (mu_all[..., 0] - ox[:, None]) ** 2 + (mu_all[..., 1] - oy[:, None]) ** 2, np.inf)
+            near = np.argpartition(d2, n_near - 1, axis=1)[:, :n_near]
+            cand, valid = cand[rows, near], valid[rows, near]
+        mu, sig = p.lm_mean[rows, cand], p.lm_cov[rows, cand]
+        r = self._r
+        rng, bearing, h00, h01, h10, h11 = _observe(poses[:, None, :], mu)
+        s00, s01, s11 = sig[..., 0, 0], sig[..., 0, 1], sig[..., 1, 1]
+        g0 = g1 = p22 = np.zeros(1)
+        if pose_cov is not None:
+            # H_x P H_x^T with H_x = [-H_m | (0,-1)^T]: H_m (Sigma + P_xy) H_m^T + [[0, g0], [g0, 2 g1 + P_tt]],
+            # where g = H_m P[:2, 2] (expanded by hand; see _observe)
+            s00 = s00 + pose_cov[:, None, 0, 0]
+            s01 = s01 + pose_cov[:, None, 0, 1]
+            s11 = s11 + pose_cov[:, None, 1, 1]
+            c0, c1 = pose_cov[:, None, 0, 2], pose_cov[:, None, 1, 2]
+            g0, g1, p22 = h00 * c0 + h01 * c1, h10 * c0 + h11 * c1, pose_cov[:, None, 2, 2]
+        a00, a01, a11, *_ = _congruence2(h00, h01, h10, h11, s00, s01, s11)
+        a00, a01, a11 = a00 + r[0, 0], a01 + r[0, 1] + g0, a11 + r[1, 1] + 2.0 * g1 + p22
+        ll = _logpdf2_sym(z[0] - rng, wrap_angle(z[1] - bearing), a00, a01, a11)
+        ll = np.where(valid, ll, -np.inf)
+        best = np.argmax(ll, axis=1)
+        best_ll = ll[np.arange(m), best]
+        return cand[np.arange(m), best], ~(best_ll >= log_p0)
+
+    def _decide(self, lm_id: int, poses: Array, pose_cov: Array | None, z: Array,
+                cand: IntArray, valid: BoolArray) -> tuple[IntArray, BoolArray]:
+        """Slot per particle for one observation and whether it is new; allocates new slots (capacity grows)."""
+        p = self.particles
+        if self.known:
+            slot = self._slot_for_id(lm_id)
+            return np.full(p.size, slot, dtype=np.int64), p.lm_evidence[:, slot] == 0
+        c, is_new = self._ml_associate(poses, pose_cov, z, cand, valid)
+        if np.any(is_new):
+            p.ensure_capacity(int(p.lm_count.max()) + 1)
+            c = np.where(is_new, p.lm_count, c)
+            p.lm_count += is_new
+        return c, is_new
+
+    def _update_landmarks(self, poses: Array, z: Array, c: IntArray, is_new: BoolArray) -> Array:
+        """EKF-update slot c of each particle (or initialise it where ``is_new``); returns the update log-likelihoods.
+
+        Shapes: poses (M,3), z (2,), c (M,), is_new (M,) -> (M,) (meaningless where is_new)."""
+        p = self.particles
+        rows = np.arange(p.size)
+        r = self._r
+        mu, sig, ll = landmark_update(poses, z, p.lm_mean[rows, c], p.lm_cov[rows, c], r)
+        if is_new.any():
+            mu0, sig0 = landmark_init(poses[is_new], z, r)
+            mu[is_new], sig[is_new] = mu0, sig0
+        p.lm_mean[rows, c] = mu
+        p.lm_cov[rows, c] = sig
+        p.lm_evidence[rows, c] = np.where(is_new, _EVIDENCE_NEW, p.lm_evidence[rows, c] + 1)
+        return ll
+
+    # -- one step ------------------------------------------------------------------------------------------------
+
+    def step(self, step: Step) -> None:
+        p = self.particles
+        cfg = self.config
+        u = np.asarray(step.odometry, dtype=np.float64)
+        obs = step.observations
+        z_all = obs.z
+        if u.shape != (3,) or not np.all(np.isfinite(u)):
+            raise ValueError(f"step {step.index}: odometry must be a finite (3,) array (got {step.odometry!r})")
+        if not np.all(np.isfinite(z_all)):
+            raise ValueError(f"step {step.index}: observations contain non-finite range or bearing")
+        ids = np.asarray(obs.landmark_id, dtype=np.int64)
+        use = np.flatnonzero(ids >= 0) if self.known else np.arange(len(obs))
+        m = p.size
+        rows = np.arange(m)
+        r = self._r
+        log_p0 = math.log(cfg.new_landmark_likelihood)
+        assoc_slots = np.full((len(obs), m), -1, dtype=np.int64)
+
+        if cfg.version == 1:
+            poses = sample_motion(p.poses, u, cfg.motion, self._rng)
+            pose_cov = None
+        else:
+            poses, pose_cov = motion_gaussian(p.poses, u, cfg.motion)
+
+        cand = np.zeros((m, 0), dtype=np.int64)
+        valid = np.zeros((m, 0), dtype=bool)
+        if not self.known:
+            # one radius for association and for the existence counters: every landmark that could be in view
+            radius = max(cfg.sensor.max_range_m, float(z_all[use, 0].max()) if use.size else 0.0)
+            cand, valid = self._candidates(poses, radius + cfg.candidate_margin_m)
+
+        dlogw = np.zeros(m)
+        if cfg.version == 1 and self.known and self._batch_known and np.unique(ids[use]).size == use.size:
+            # given the sampled pose, the EKFs of distinct landmarks are independent: update all of this scan's
+            # landmarks at once, (M, k) in one go (the loop below gives the same numbers, with more overhead)
+            slots = np.array([self._slot_for_id(int(i)) for i in ids[use]], dtype=np.int64)
+            z_use = z_all[use]
+            is_new = p.lm_evidence[:, slots] == 0
+            mu, sig, ll = landmark_update(poses[:, None, :], z_use, p.lm_mean[:, slots], p.lm_cov[:, slots], r)
+            if is_new.any():
+                mu0, sig0 = landmark_init(np.broadcast_to(poses[:, None, :], (*is_new.shape, 3)), z_use, r)
+                mu[is_new], sig[is_new] = mu0[is_new], sig0[is_new]
+            p.lm_mean[:, slots] = mu
+            p.lm_cov[:, slots] = sig
+            p.lm_evidence[:, slots] = np.where(is_new, _EVIDENCE_NEW, p.lm_evidence[:, slots] + 1)
+            dlogw += np.where(is_new, log_p0, ll).sum(axis=1)
+            assoc_slots[use] = slots[:, None]
+        elif cfg.version == 1:
+            for j in use:
+                z = z_all[j]
+                c, is_new = self._decide(int(ids[j]), poses, None, z, cand, valid)
+                ll = self._update_landmarks(poses, z, c, is_new)
+                dlogw += np.where(is_new, log_p0, ll)
+                assoc_slots[j] = c
+        else:
+            assert pose_cov is not None
+            decisions: list[tuple[int, IntArray, BoolArray]] = []
+            pending: set[int] = set()  # known ids first seen in this scan: initialised only after the draw
+            for j in use:
+                z = z_all[j]
+                c, is_new = self._decide(int(ids[j]), poses, pose_cov, z, cand, valid)
+                if self.known and is_new.any():
+                    if int(c[0]) in pending:
+                        # a repeated new id in one scan: no landmark exists yet to condition the proposal on;
+                        # its sighting refines the fresh landmark after the draw (below)
+                        decisions.append((int(j), c, is_new))
+                        assoc_slots[j] = c
+                        continue
+                    pending.add(int(c[0]))
+                mean2, cov2, ll = proposal_update(poses, pose_cov, z, p.lm_mean[rows, c], p.lm_cov[rows, c], r)
+                poses = np.where(is_new[:, None], poses, mean2)
+                pose_cov = np.where(is_new[:, None, None], pose_cov, cov2)
+                dlogw += np.where(is_new, log_p0, ll)
+                decisions.append((int(j), c, is_new))
+                assoc_slots[j] = c
+            poses = sample_gaussian_poses(poses, pose_cov, self._rng)
+            # landmark EKFs at the drawn pose, in the order the observations were incorporated
+            for jj, c, is_new in decisions:
+                self._update_landmarks(poses, z_all[jj], c, is_new & (p.lm_evidence[rows, c] == 0))
+        p.poses = poses
+
+        if not self.known:
+            self._count_misses(cand, valid, assoc_slots[use])
+
+        lw, degenerate = normalize_log_weights(p.log_weights + dlogw)
+        if degenerate:
+            self._weight_resets += 1
+        w = np.exp(lw)
+        self._n_eff = effective_sample_size(w)
+        self._pose, self._pose_cov = weighted_pose_stats(p.poses, w)
+        best = int(np.argmax(w))
+        self._resampled = self._n_eff < cfg.resample_threshold * m
+        if self._resampled:
+            idx = systematic_resample(w, self._rng)
+            self._p = p = p.select(idx)
+            p.log_weights = np.full(m, -math.log(m))
+            # the best particle has w >= 1/M, so systematic resampling always keeps at least one copy of it
+            best = int(np.flatnonzero(idx == best)[0])
+        else:
+            p.log_weights = lw
+        self._best = best
+        self._assoc = np.full(len(obs), -1, dtype=np.int64)
+        shown = assoc_slots[:, best]
+        for j in np.flatnonzero(shown >= 0):
+            self._assoc[j] = self._slot_ids[shown[j]] if self.known else shown[j]
+
+    def _count_misses(self, cand: IntArray, valid: BoolArray, observed: IntArray) -> None:
+        """Existence counters: -1 for each landmark predicted well inside the sensor's view and not
+        observed this step; a counter reaching 0 frees the slot (its stale mean stays; evidence 0 marks it empty).
+
+        Shapes: cand/valid (M,V) the landmarks near each particle (a superset of those in view), observed (k,M)."""
+        p = self.particles
+        if cand.shape[1] == 0:
+            return
+        sensor = self.config.sensor
+        rows = np.arange(p.size)[:, None]
+        z_hat = range_bearing(p.poses[:, None, :], p.lm_mean[rows, cand])
+        in_view = valid & (p.lm_evidence[rows, cand] > 0) & (z_hat[..., 0] <= _MISS_MARGIN * sensor.max_range_m) & (
+            np.abs(z_hat[..., 1]) <= _MISS_MARGIN * 0.5 * sensor.fov_rad)
+        if observed.size:
+            in_view &= ~np.any(cand[None, :, :] == observed[:, :, None], axis=0)
+        np.subtract.at(p.lm_evidence, (np.broadcast_to(rows, cand.shape)[in_view], cand[in_view]), 1)
+
+    # -- snapshot ------------------------------------------------------------------------------------------------
+
+    def estimate(self) -> Estimate:
+        p = self.particles
+        b = self._best
+        slots = np.flatnonzero(p.lm_evidence[b] > 0)
+        if self.known:
+            ids = np.asarray(self._slot_ids, dtype=np.int64)[slots] if slots.size else np.zeros(0, dtype=np.int64)
+        else:
+            ids = slots.astype(np.int64)
+        w = np.exp(p.log_weights)
+        return Estimate(
+            pose=self._pose.copy(),
+            pose_cov=self._pose_cov.copy(),
+            landmarks=p.lm_mean[b, slots].copy(),
+            landmark_covs=p.lm_cov[b, slots].copy(),
+            landmark_ids=ids,
+            extras={
+                "particles": p.poses.copy(),
+                "weights": w,
+                "n_eff": self._n_eff,
+                "resampled": self._resampled,
+                "weight_resets": self._weight_resets,
+                "state_dim": 3 + 2 * int(slots.size),
+                "assoc": self._assoc.copy(),
+                "version": self.config.version,
+            },
+        )

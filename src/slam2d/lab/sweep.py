@@ -1,0 +1,627 @@
+"""Sweeps: configurations x seeds, run through any ``concurrent.futures.Executor``, stored one record per run.
+
+A sweep file (TOML) names the estimators, scenarios and seeds, fixed overrides (``[set]``), a grid of overrides
+(``[grid]``: every key a list; the cartesian product is taken) and/or a list of override tables (``[[configs]]``)::
+
+    estimators = ["dead-reckoning"]        # or "all": every registered estimator
+    scenarios = ["grid"]
+    seeds = 10                             # 0..9; or a list [0, 4, 7]; or {start = 100, count = 10}
+    [set]
+    steps = 50
+    [grid]
+    landmarks = [25, 50, 100]
+    "sensor.range_std_m" = [0.05, 0.2]
+
+Every expanded run config is validated by constructing its scenario and estimator configs *before* any run starts;
+an unknown key or invalid value raises ValueError naming the key and the table it came from.
+
+The result store is ``DIR/results.jsonl``: one JSON record per (config hash, seed), each appended with a single
+``write`` on an ``O_APPEND`` descriptor and ``fsync``-ed before the next, and carrying a checksum of its own content.
+On (re)start every line is checked; a corrupt or partial line is reported, moved to ``DIR/quarantine.jsonl`` (never
+silently dropped) and its run is done again. Finished runs are skipped, so an interrupted sweep resumes where it
+stopped. Only the submitting process writes the store, so it is safe with any executor, including Dask.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import contextlib
+import hashlib
+import itertools
+import json
+import math
+import os
+import signal
+import socket
+import sys
+import time
+import tomllib
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from slam2d.config import split_overrides, to_dict, with_overrides
+from slam2d.lab.registry import estimator_names, get_spec, make_config
+from slam2d.sim.scenarios import ScenarioConfig
+
+STORE_FILE = "results.jsonl"
+QUARANTINE_FILE = "quarantine.jsonl"
+PLAN_FILE = "plan.json"
+LOCK_FILE = ".lock"
+
+TOP_KEYS = {
+    "name": "a label for the sweep (string)",
+    "description": "free text",
+    "estimators": 'list of estimator names, or "all"',
+    "scenarios": "list of scenario names",
+    "seeds": "number of seeds, a list of seeds, or {start, count}",
+    "set": "table of overrides applied to every run",
+    "grid": "table of override -> list of values (cartesian product)",
+    "configs": "array of override tables (each one is a configuration)",
+}
+
+
+# ----------------------------------------------------------------------------------------------- configurations
+@dataclass(frozen=True)
+class RunSpec:
+    """One configuration of a sweep: estimator, scenario, overrides (JSON-able). The seed is separate."""
+
+    estimator: str
+    scenario: str
+    overrides: Mapping[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"estimator": self.estimator, "scenario": self.scenario, "overrides": dict(self.overrides)}
+
+    @property
+    def key(self) -> str:
+        """Stable content hash of the configuration (16 hex digits)."""
+        blob = json.dumps(self.to_dict(), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+    def label(self) -> str:
+        ov = ", ".join(f"{k}={v}" for k, v in sorted(self.overrides.items()))
+        return f"{self.estimator} on {self.scenario}" + (f" ({ov})" if ov else "")
+
+
+@dataclass(frozen=True)
+class SweepPlan:
+    """An expanded sweep: every configuration and the seeds each runs with."""
+
+    name: str
+    specs: tuple[RunSpec, ...]
+    seeds: tuple[int, ...]
+
+    def jobs(self) -> list[tuple[RunSpec, int]]:
+        return [(s, seed) for s in self.specs for seed in self.seeds]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "seeds": list(self.seeds),
+                "configs": [{"key": s.key, **s.to_dict()} for s in self.specs]}
+
+
+def resolve_spec(spec: RunSpec) -> tuple[ScenarioConfig, dict[str, Any], Any]:
+    """Build a run's scenario config, its estimator-only overrides and the estimator config (validates all).
+
+    Keys route as in :func:`slam2d.lab.runner.run_named`: a key the scenario knows goes to the scenario (and the
+    estimator inherits it through the log's metadata); ``estimator.KEY`` sets only the estimator's copy;
+    ``scenario.KEY`` only the scenario's.
+    """
+    est_spec = get_spec(spec.estimator)
+    est_only = {k.split(".", 1)[1]: v for k, v in spec.overrides.items() if k.startswith("estimator.")}
+    rest = {k.split(".", 1)[1] if k.startswith("scenario.") else k: v for k, v in spec.overrides.items()
+            if not k.startswith("estimator.")}
+    if "name" in rest:
+        raise ValueError("override 'name' is not allowed: choose scenarios with the 'scenarios' list")
+    scen_over, est_over = split_overrides(rest, ScenarioConfig, est_spec.config_cls)
+    scen = with_overrides(ScenarioConfig(name=spec.scenario), scen_over)
+    est_all = {**est_over, **est_only}
+    meta = {"motion": to_dict(scen.motion), "sensor": to_dict(scen.sensor)}
+    est_cfg = make_config(spec.estimator, est_all, meta)
+    return scen, est_all, est_cfg
+
+
+def _flatten(table: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """``{"sensor": {"range_std_m": 1}}`` -> ``{"sensor.range_std_m": 1}`` (TOML sub-tables become dotted keys)."""
+    out: dict[str, Any] = {}
+    for k, v in table.items():
+        if isinstance(v, Mapping):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def _check_value(where: str, v: Any) -> None:
+    if isinstance(v, bool | int | float | str):
+        if isinstance(v, float) and not math.isfinite(v):
+            raise ValueError(f"{where}: value must be finite (got {v!r})")
+        return
+    raise ValueError(f"{where}: value must be a number, string or boolean (got {type(v).__name__} {v!r})")
+
+
+def _parse_seeds(v: Any, source: str) -> tuple[int, ...]:
+    if isinstance(v, bool):
+        raise ValueError(f"{source}: 'seeds' must be a count, a list of integers or {{start, count}} (got {v!r})")
+    if isinstance(v, int):
+        if v < 1:
+            raise ValueError(f"{source}: 'seeds' count must be >= 1 (got {v})")
+        return tuple(range(v))
+    if isinstance(v, list):
+        if not v or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in v):
+            raise ValueError(f"{source}: 'seeds' list must be non-empty non-negative integers (got {v!r})")
+        if len(set(v)) != len(v):
+            raise ValueError(f"{source}: 'seeds' list has duplicates: {v!r}")
+        return tuple(v)
+    if isinstance(v, Mapping):
+        unknown = sorted(set(v) - {"start", "count"})
+        if unknown:
+            raise ValueError(f"{source}: unknown key(s) {unknown} in 'seeds'; valid keys: ['count', 'start']")
+        start, count = v.get("start", 0), v.get("count")
+        for n, x in (("seeds.start", start), ("seeds.count", count)):
+            if not isinstance(x, int) or isinstance(x, bool) or x < (1 if n == "seeds.count" else 0):
+                raise ValueError(f"{source}: '{n}' must be an integer >= {1 if n == 'seeds.count' else 0} (got {x!r})")
+        return tuple(range(start, start + count))
+    raise ValueError(f"{source}: 'seeds' must be a count, a list of integers or {{start, count}} (got {v!r})")
+
+
+def _parse_names(data: Mapping[str, Any], key: str, valid: Sequence[str], source: str,
+                 default: list[str] | None = None) -> list[str]:
+    v = data.get(key, default)
+    if v is None:
+        raise ValueError(f"{source}: missing required key '{key}' ({TOP_KEYS[key]})")
+    if v == "all":
+        return list(valid)
+    if isinstance(v, str):
+        v = [v]
+    if not isinstance(v, list) or not v or not all(isinstance(s, str) for s in v):
+        raise ValueError(f"{source}: '{key}' must be a non-empty list of names (got {v!r})")
+    bad = [s for s in v if s not in valid]
+    if bad:
+        raise ValueError(f"{source}: '{key}' has unknown name(s) {bad}; valid: {sorted(valid)}")
+    if len(set(v)) != len(v):
+        raise ValueError(f"{source}: '{key}' has duplicates: {v!r}")
+    return list(v)
+
+
+def parse_sweep(data: Mapping[str, Any], source: str = "sweep") -> SweepPlan:
+    """Expand and validate a sweep description (the parsed TOML). Raises ValueError naming the offending key."""
+    from slam2d.sim.scenarios import SCENARIOS
+
+    unknown = sorted(set(data) - set(TOP_KEYS))
+    if unknown:
+        raise ValueError(f"{source}: unknown key(s) {unknown}; valid keys: {sorted(TOP_KEYS)}")
+    name = data.get("name", Path(source).stem)
+    if not isinstance(name, str):
+        raise ValueError(f"{source}: 'name' must be a string (got {name!r})")
+    estimators = _parse_names(data, "estimators", estimator_names(), source)
+    scenarios = _parse_names(data, "scenarios", sorted(SCENARIOS), source, default=["room"])
+    seeds = _parse_seeds(data.get("seeds", 1), source)
+
+    # origin of each override key, so that errors can name the table it came from
+    fixed_raw = data.get("set", {})
+    if not isinstance(fixed_raw, Mapping):
+        raise ValueError(f"{source}: 'set' must be a table of overrides (got {fixed_raw!r})")
+    fixed = _flatten(fixed_raw)
+    for k, v in fixed.items():
+        _check_value(f"{source}: set.{k}", v)
+    grid_raw = data.get("grid", {})
+    if not isinstance(grid_raw, Mapping):
+        raise ValueError(f"{source}: 'grid' must be a table of override -> list of values (got {grid_raw!r})")
+    grid = _flatten(grid_raw)
+    for k, vals in grid.items():
+        if not isinstance(vals, list) or not vals:
+            raise ValueError(f"{source}: grid.{k} must be a non-empty list of values (got {vals!r})")
+        for v in vals:
+            _check_value(f"{source}: grid.{k}", v)
+        if len({json.dumps(v) for v in vals}) != len(vals):
+            raise ValueError(f"{source}: grid.{k} has duplicate values: {vals!r}")
+    cfg_list_raw = data.get("configs", [{}])
+    if not isinstance(cfg_list_raw, list) or not cfg_list_raw or not all(isinstance(c, Mapping) for c in cfg_list_raw):
+        raise ValueError(f"{source}: 'configs' must be a non-empty array of tables ([[configs]])")
+    cfg_list = [_flatten(c) for c in cfg_list_raw]
+    for i, c in enumerate(cfg_list):
+        for k, v in c.items():
+            _check_value(f"{source}: configs[{i}].{k}", v)
+            if k in grid:
+                raise ValueError(f"{source}: key '{k}' is in both grid and configs[{i}]; give it in one place")
+
+    grid_keys = sorted(grid)
+    specs: list[RunSpec] = []
+    seen: set[str] = set()
+    for est in estimators:
+        for scen in scenarios:
+            for ci, c in enumerate(cfg_list):
+                for values in itertools.product(*(grid[k] for k in grid_keys)):
+                    origin = {k: f"set.{k}" for k in fixed}
+                    origin.update({k: f"configs[{ci}].{k}" for k in c})
+                    origin.update({k: f"grid.{k}" for k in grid_keys})
+                    ov = {**fixed, **c, **dict(zip(grid_keys, values, strict=True))}
+                    spec = RunSpec(est, scen, ov)
+                    _validate(spec, origin, source)
+                    if spec.key not in seen:
+                        seen.add(spec.key)
+                        specs.append(spec)
+    return SweepPlan(name, tuple(specs), seeds)
+
+
+def _validate(spec: RunSpec, origin: Mapping[str, str], source: str) -> None:
+    """Construct the run's configs; on failure find the key responsible and name it with its table."""
+    try:
+        resolve_spec(spec)
+        return
+    except ValueError as e:
+        whole = str(e)
+    for k, v in spec.overrides.items():
+        try:
+            resolve_spec(RunSpec(spec.estimator, spec.scenario, {k: v}))
+        except ValueError as e:
+            raise ValueError(f"{source}: {origin.get(k, k)} = {v!r} (for {spec.estimator} on {spec.scenario}): {e}"
+                             ) from None
+    raise ValueError(f"{source}: invalid configuration {spec.label()}: {whole}")
+
+
+def load_sweep(path: str | Path) -> SweepPlan:
+    """Read and validate a sweep TOML file (see the module docstring for the schema)."""
+    p = Path(path)
+    try:
+        with p.open("rb") as f:
+            data = tomllib.load(f)
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"{p}: not valid TOML: {e}") from None
+    return parse_sweep(data, str(p))
+
+
+# ------------------------------------------------------------------------------------------------- the job
+def _clean(v: Any) -> Any:
+    """JSON-safe copy: numpy scalars/arrays to Python, non-finite floats to None."""
+    if isinstance(v, Mapping):
+        return {str(k): _clean(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [_clean(x) for x in v]
+    if isinstance(v, np.ndarray):
+        return _clean(v.tolist())
+    if isinstance(v, np.generic):
+        return _clean(v.item())
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
+
+
+def evaluate_extra(result: Any, log: Any) -> dict[str, Any]:
+    """Consistency and map metrics of one run beyond the runner's: per-step pose NEES and the map error.
+
+    Pose NEES is left out (nan) for steps whose pose covariance is not positive definite (e.g. the start).
+    """
+    from slam2d.eval.consistency import pose_nees
+    from slam2d.eval.mapping import map_error
+    from slam2d.eval.trajectory import align_se2
+
+    out: dict[str, Any] = {}
+    if log.true_poses is not None and result.pose_covs is not None:
+        covs = result.pose_covs[1:]
+        series = np.full(covs.shape[0], np.nan)
+        ok = np.all(np.linalg.eigvalsh(0.5 * (covs + covs.transpose(0, 2, 1))) > 0, axis=-1)
+        if ok.any():
+            series[ok] = pose_nees(result.poses[1:][ok], covs[ok], log.true_poses[1:][ok])
+        out["pose_nees"] = [float(f"{v:.5g}") if np.isfinite(v) else None for v in series]
+        out["pose_nees_mean"] = float(np.nanmean(series)) if ok.any() else None
+    if log.true_landmarks is not None and len(result.final.landmarks):
+        align = align_se2(result.trajectory, log.true_poses) if log.true_poses is not None else None
+        me = map_error(result.final.landmarks, log.true_landmarks, max_distance_m=2.0, alignment=align)
+        out.update(map_rmse_m=me.rmse_m, map_matched=me.matched, map_spurious=me.spurious, map_missed=me.missed)
+    return out
+
+
+def run_job(spec: Mapping[str, Any], seed: int) -> dict[str, Any]:
+    """Run one (configuration, seed); never raises for a failing run (the record says ``status: error``).
+
+    Top level of an installed module so that process pools and Dask workers can import it.
+    """
+    from slam2d.lab.runner import run_named
+    from slam2d.sim.simulator import simulate
+
+    t0 = time.perf_counter()
+    rs = RunSpec(str(spec["estimator"]), str(spec["scenario"]), dict(spec.get("overrides", {})))
+    rec: dict[str, Any] = {"key": rs.key, "seed": int(seed), "config": rs.to_dict(),
+                           "host": socket.gethostname(), "pid": os.getpid()}
+    try:
+        scen, est_over, _ = resolve_spec(rs)
+        log = simulate(scen, int(seed))
+        result, record = run_named(rs.estimator, log=log, seed=int(seed),
+                                   overrides={f"estimator.{k}": v for k, v in est_over.items()})
+        record.update(evaluate_extra(result, log))
+        rec.update(status="ok", metrics=record)
+    except Exception as e:  # a failing run is a result too; the sweep goes on
+        rec.update(status="error", error=f"{type(e).__name__}: {e}")
+    rec["elapsed_s"] = time.perf_counter() - t0
+    return _clean(rec)  # type: ignore[no-any-return]
+
+
+# ------------------------------------------------------------------------------------------------- the store
+def _checksum(record: Mapping[str, Any]) -> str:
+    body = {k: v for k, v in record.items() if k != "check"}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()[:16]
+
+
+@dataclass
+class StoreProblem:
+    """A store line that could not be used: its 1-based line number, why, and its raw text."""
+
+    line: int
+    reason: str
+    text: str
+
+
+class ResultStore:
+    """Append-only JSONL store of run records keyed by (config key, seed) in ``directory``."""
+
+    def __init__(self, directory: str | Path) -> None:
+        self.directory = Path(directory)
+        self.path = self.directory / STORE_FILE
+        self._fd: int | None = None
+
+    # reading ------------------------------------------------------------------------------------------------
+    def scan(self) -> tuple[dict[tuple[str, int], dict[str, Any]], list[StoreProblem]]:
+        """All valid records (first one wins for a repeated (key, seed)) and every unusable line."""
+        records: dict[tuple[str, int], dict[str, Any]] = {}
+        problems: list[StoreProblem] = []
+        if not self.path.exists():
+            return records, problems
+        raw = self.path.read_bytes()
+        lines = raw.split(b"\n")
+        # the text after the last newline is a partial record if non-empty (the writer always ends with "\n")
+        for i, b in enumerate(lines, start=1):
+            if not b.strip():
+                continue
+            text = b.decode("utf-8", errors="replace")
+            if i == len(lines):
+                problems.append(StoreProblem(i, "partial record (no end of line; the writer was interrupted)", text))
+                continue
+            try:
+                rec = json.loads(text)
+            except json.JSONDecodeError as e:
+                problems.append(StoreProblem(i, f"not valid JSON ({e.msg} at column {e.colno})", text))
+                continue
+            if not isinstance(rec, dict) or not isinstance(rec.get("key"), str) or not isinstance(rec.get("seed"), int):
+                problems.append(StoreProblem(i, "not a run record (no 'key' and integer 'seed')", text))
+                continue
+            if rec.get("check") != _checksum(rec):
+                problems.append(StoreProblem(i, "checksum mismatch (the record was altered)", text))
+                continue
+            k = (rec["key"], rec["seed"])
+            if k in records:
+                problems.append(StoreProblem(i, f"duplicate record for config {k[0]} seed {k[1]}", text))
+                continue
+            records[k] = rec
+        return records, problems
+
+    def records(self) -> list[dict[str, Any]]:
+        return list(self.scan()[0].values())
+
+    # repairing ----------------------------------------------------------------------------------------------
+    def quarantine(self, problems: Sequence[StoreProblem]) -> None:
+        """Move the problem lines to ``quarantine.jsonl`` and rewrite the store without them (atomically)."""
+        if not problems:
+            return
+        bad = {p.line for p in problems}
+        lines = self.path.read_bytes().split(b"\n")
+        keep = [b for i, b in enumerate(lines, start=1) if b.strip() and i not in bad]
+        with (self.directory / QUARANTINE_FILE).open("a") as q:
+            for p in problems:
+                q.write(json.dumps({"line": p.line, "reason": p.reason, "text": p.text,
+                                    "moved_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}) + "\n")
+            q.flush()
+            os.fsync(q.fileno())
+        tmp = self.path.with_suffix(".jsonl.tmp")
+        with tmp.open("wb") as f:
+            f.write(b"".join(b + b"\n" for b in keep))
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, self.path)
+        self._fsync_dir()
+
+    # writing ------------------------------------------------------------------------------------------------
+    def open(self) -> None:
+        self.directory.mkdir(parents=True, exist_ok=True)
+        new = not self.path.exists()
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        if new:
+            self._fsync_dir()
+
+    def append(self, record: Mapping[str, Any]) -> None:
+        """Append one record as one line: a single write on an O_APPEND descriptor, then fsync."""
+        if self._fd is None:
+            self.open()
+        assert self._fd is not None
+        rec = dict(record)
+        rec["check"] = _checksum(rec)
+        data = (json.dumps(rec, sort_keys=True, separators=(",", ":"), allow_nan=False) + "\n").encode()
+        view = memoryview(data)
+        while view:
+            n = os.write(self._fd, view)
+            view = view[n:]
+        os.fsync(self._fd)
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+    def _fsync_dir(self) -> None:
+        fd = os.open(self.directory, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+# ------------------------------------------------------------------------------------------------- running
+def _ignore_sigint() -> None:
+    # Ctrl-C goes to the whole process group; only the parent should react (cancel, keep what is stored).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+@contextlib.contextmanager
+def make_executor(workers: int | None = None, scheduler: str | None = None) -> Iterator[cf.Executor]:
+    """A local process pool, or a Dask executor when a scheduler address is given (or ``DASK_SCHEDULER_ADDRESS``).
+
+    Dask needs the ``cluster`` extra (``pip install slam2d[cluster]``) and workers that can import slam2d.
+    """
+    address = scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS") or None
+    if workers is not None and workers < 1:
+        raise ValueError(f"--workers must be >= 1 (got {workers})")
+    if address:
+        try:
+            from dask.distributed import Client
+        except ImportError:
+            raise ValueError("a Dask scheduler was given but dask.distributed is not installed; "
+                             "install the cluster extra: pip install 'slam2d[cluster]'") from None
+        client = Client(address, timeout=30)
+        try:
+            yield client.get_executor(pure=False)
+        finally:
+            client.close()
+        return
+    import multiprocessing
+
+    # forkserver: no fork() of a process that already runs threads (tqdm's monitor); the preload makes the
+    # workers start with slam2d imported.
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload(["slam2d.lab.sweep"])
+    ex = cf.ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1, mp_context=ctx,
+                                initializer=_ignore_sigint)
+    try:
+        yield ex
+    finally:
+        ex.shutdown(wait=True, cancel_futures=True)
+
+
+@dataclass
+class SweepSummary:
+    """What a call to :func:`run_sweep` did."""
+
+    total: int
+    already_done: int
+    ran: int = 0
+    errors: int = 0
+    failed: list[str] = field(default_factory=list)
+    problems: list[StoreProblem] = field(default_factory=list)
+    interrupted: bool = False
+
+    @property
+    def complete(self) -> bool:
+        return not self.failed and not self.interrupted and self.already_done + self.ran == self.total
+
+
+def run_sweep(
+    plan: SweepPlan,
+    out_dir: str | Path,
+    executor: cf.Executor,
+    *,
+    progress: bool | None = None,
+    max_in_flight: int | None = None,
+    report: Callable[[str], None] | None = None,
+    on_record: Callable[[dict[str, Any]], None] | None = None,
+) -> SweepSummary:
+    """Run every (config, seed) of ``plan`` not yet in the store at ``out_dir``; store each record as it arrives.
+
+    ``progress=None`` shows a bar (with ETA) when stderr is a terminal. At most ``max_in_flight`` runs are submitted
+    at a time (default 64), so an interrupt cancels quickly. On KeyboardInterrupt the pending runs are cancelled,
+    what is stored stays stored, and the summary says ``interrupted`` (the caller decides the exit code).
+    """
+    say = report or (lambda msg: print(msg, file=sys.stderr))
+    store = ResultStore(out_dir)
+    store.directory.mkdir(parents=True, exist_ok=True)
+    with _exclusive(store.directory / LOCK_FILE):
+        return _run_locked(plan, store, executor, say, progress, max_in_flight, on_record)
+
+
+@contextlib.contextmanager
+def _exclusive(path: Path) -> Iterator[None]:
+    """Hold an advisory lock so that two sweeps never write one store at the same time."""
+    import fcntl
+
+    with path.open("a") as f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"another sweep is writing to {path.parent} (lock {path.name} is held)") from None
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def _run_locked(plan: SweepPlan, store: ResultStore, executor: cf.Executor, say: Callable[[str], None],
+                progress: bool | None, max_in_flight: int | None,
+                on_record: Callable[[dict[str, Any]], None] | None) -> SweepSummary:
+    done, problems = store.scan()
+    for p in problems:
+        say(f"store {store.path}: line {p.line}: {p.reason}; moved to {QUARANTINE_FILE}, its run will be redone")
+    store.quarantine(problems)
+    _write_plan(store.directory / PLAN_FILE, plan)
+    jobs = plan.jobs()
+    pending = [(s, seed) for s, seed in jobs if (s.key, seed) not in done]
+    summary = SweepSummary(total=len(jobs), already_done=len(jobs) - len(pending), problems=problems)
+    say(f"sweep {plan.name}: {len(jobs)} runs ({len(plan.specs)} configs x {len(plan.seeds)} seeds); "
+        f"{summary.already_done} already stored, {len(pending)} to run")
+    if not pending:
+        return summary
+    bar = _bar(len(jobs), summary.already_done, progress)
+    window = max_in_flight or 64
+    queue = iter(pending)
+    in_flight: dict[cf.Future[dict[str, Any]], tuple[RunSpec, int]] = {}
+    store.open()
+    try:
+        while True:
+            for s, seed in itertools.islice(queue, max(0, window - len(in_flight))):
+                in_flight[executor.submit(run_job, s.to_dict(), seed)] = (s, seed)
+            if not in_flight:
+                break
+            finished, _ = cf.wait(list(in_flight), return_when=cf.FIRST_COMPLETED)
+            for fut in finished:
+                s, seed = in_flight.pop(fut)
+                try:
+                    rec = fut.result()
+                except Exception as e:  # infrastructure failure (worker lost for good, pool broken): not stored
+                    summary.failed.append(f"{s.label()} seed {seed}: {type(e).__name__}: {e}")
+                    continue
+                store.append(rec)
+                summary.ran += 1
+                summary.errors += rec.get("status") != "ok"
+                if bar is not None:
+                    bar.update(1)
+                if on_record is not None:
+                    on_record(rec)
+    except KeyboardInterrupt:
+        summary.interrupted = True
+        for fut in in_flight:
+            fut.cancel()
+        say(f"interrupted: {summary.already_done + summary.ran} of {len(jobs)} runs stored in {store.path}; "
+            "run the same command again to finish the rest")
+    finally:
+        store.close()
+        if bar is not None:
+            bar.close()
+    if summary.failed:
+        say(f"{len(summary.failed)} runs did not complete (not stored; re-run to retry); first: {summary.failed[0]}")
+    return summary
+
+
+def _bar(total: int, initial: int, enabled: bool | None) -> Any:
+    show = sys.stderr.isatty() if enabled is None else enabled
+    if not show:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, initial=initial, unit="run", file=sys.stderr, smoothing=0.1)
+
+
+def _write_plan(path: Path, plan: SweepPlan) -> None:
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(plan.to_dict(), indent=1, sort_keys=True) + "\n")
+    os.replace(tmp, path)

@@ -1,0 +1,228 @@
+"""The lab's web server: static pages, a status API, and one websocket (one session) per open page.
+
+Protocol of ``/ws/{page}?seed=S&hz=H``:
+
+* server -> browser, text: ``hello`` (scalar names, parameters, actions, values, notices, world bounds) once, then
+  ``state`` after every accepted command, ``error`` (with a message) for every rejected one;
+* server -> browser, binary: frames (``slam2d.web.frames``) at ``hz`` per second (default 60, 1..120);
+* browser -> server, text JSON, at most ``MAX_COMMAND_BYTES``: ``{"type":"key","key":"ArrowUp","down":true}``,
+  ``{"type":"param","name":"sensor_range_m","value":6}``, ``{"type":"action","name":"reset"}``,
+  ``{"type":"ping"}``. Anything else is answered with an ``error`` message; the session carries on.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+from fastapi import FastAPI, WebSocket
+from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi.staticfiles import StaticFiles
+from starlette.websockets import WebSocketDisconnect, WebSocketState
+
+from slam2d.web.backends import status
+from slam2d.web.frames import TAGS, encode_frame
+from slam2d.web.pages import PAGE_BY_SLUG, PAGES
+from slam2d.web.params import CommandError
+from slam2d.web.sessions import Session
+
+STATIC = Path(__file__).parent / "static"
+MAX_COMMAND_BYTES = 4096
+#: protocol-level limit handed to uvicorn: larger messages close the connection (code 1009) before parsing
+WS_MAX_SIZE = 1 << 20
+DEFAULT_HZ = 60
+
+log = logging.getLogger("slam2d.web")
+
+
+def _int_query(ws: WebSocket, name: str, default: int, lo: int, hi: int) -> int:
+    raw = ws.query_params.get(name)
+    if raw is None:
+        return default
+    try:
+        return min(max(int(raw), lo), hi)
+    except ValueError:
+        return default
+
+
+def parse_command(data: str | bytes | None) -> dict[str, Any]:
+    """Decode one browser command; CommandError (sent back to the page) for anything that is not a small object."""
+    if data is None:
+        raise CommandError("empty message")
+    if isinstance(data, bytes):
+        raise CommandError("commands must be JSON text messages, not binary")
+    if len(data.encode("utf-8", "surrogatepass")) > MAX_COMMAND_BYTES:
+        raise CommandError(f"command too large ({len(data)} characters; the limit is {MAX_COMMAND_BYTES} bytes)")
+    try:
+        msg = json.loads(data)
+    except (json.JSONDecodeError, RecursionError) as e:
+        raise CommandError(f"malformed JSON: {e}") from None
+    if not isinstance(msg, dict):
+        raise CommandError(f"a command must be a JSON object, got {type(msg).__name__}")
+    return msg
+
+
+class Connection:
+    """One websocket: a receiver task applying commands, a sender loop advancing the session and sending frames."""
+
+    def __init__(self, ws: WebSocket, session: Session, hz: int) -> None:
+        self.ws, self.session, self.hz = ws, session, hz
+        self.lock = asyncio.Lock()  # one writer at a time on the socket
+        # the session is stepped in a worker thread (so one slow estimator does not stall the other tabs);
+        # commands wait for the step in progress, so a session is never changed while it steps
+        self.session_lock = asyncio.Lock()
+        self.closed = False
+
+    async def send_json(self, obj: dict[str, Any]) -> None:
+        async with self.lock:
+            await self.ws.send_text(json.dumps(obj, allow_nan=False, default=_json_default))
+
+    async def receiver(self) -> None:
+        while True:
+            msg = await self.ws.receive()
+            if msg["type"] == "websocket.disconnect":
+                self.closed = True
+                return
+            try:
+                cmd = parse_command(msg.get("text") if msg.get("text") is not None else msg.get("bytes"))
+                async with self.session_lock:
+                    reply = self.session.apply(cmd)
+            except CommandError as e:
+                await self.send_json({"type": "error", "message": str(e)})
+                continue
+            except Exception as e:  # a bug in a session must cost one command, not the connection
+                log.warning("page %s: command failed: %s: %s", self.session.page, type(e).__name__, e)
+                await self.send_json({"type": "error", "message": f"command failed: {type(e).__name__}: {e}"})
+                continue
+            if reply is not None:
+                await self.send_json(reply)
+
+    def _tick(self, dt: float, seq: int) -> bytes:
+        self.session.advance(dt)
+        return encode_frame(seq, self.session.sections())
+
+    async def sender(self) -> None:
+        period = 1.0 / self.hz
+        seq = 0
+        last = time.perf_counter()
+        nxt = last
+        while not self.closed:
+            now = time.perf_counter()
+            async with self.session_lock:
+                frame = await asyncio.to_thread(self._tick, min(now - last, 0.5), seq)
+            last = now
+            async with self.lock:
+                await self.ws.send_bytes(frame)
+            seq += 1
+            nxt += period
+            delay = nxt - time.perf_counter()
+            if delay < -period:  # behind by more than a frame: drop frames rather than burst to catch up
+                nxt = time.perf_counter()
+                delay = 0.0
+            await asyncio.sleep(max(delay, 0.0))
+
+
+def _json_default(o: Any) -> Any:
+    import numpy as np
+
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _nan_safe(obj: Any) -> Any:
+    """Replace non-finite floats (JSON has none) by None."""
+    if isinstance(obj, float):
+        return obj if obj == obj and abs(obj) != float("inf") else None
+    if isinstance(obj, dict):
+        return {k: _nan_safe(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_nan_safe(v) for v in obj]
+    return obj
+
+
+def create_app() -> FastAPI:
+    """The lab application (run with uvicorn, ``ws_per_message_deflate=False``)."""
+    app = FastAPI(title="slam2d lab", docs_url=None, redoc_url=None, openapi_url=None)
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+
+    @app.get("/")
+    async def index() -> FileResponse:
+        return FileResponse(STATIC / "index.html")
+
+    @app.get("/favicon.ico")
+    async def favicon() -> Response:
+        return Response(status_code=204)
+
+    @app.get("/api/status")
+    async def api_status() -> JSONResponse:
+        return JSONResponse({**status(), "pages": [{"slug": p.slug, "number": p.number, "title": p.title,
+                                                     "summary": p.summary} for p in PAGES],
+                             "frame_tags": {k: list(v) for k, v in TAGS.items()}})
+
+    @app.get("/lab/{slug}")
+    async def page(slug: str) -> Response:
+        if slug not in PAGE_BY_SLUG:
+            return JSONResponse({"error": f"unknown page {slug!r}; pages: {sorted(PAGE_BY_SLUG)}"}, status_code=404)
+        return FileResponse(STATIC / f"{slug}.html")
+
+    @app.websocket("/ws/{slug}")
+    async def socket(ws: WebSocket, slug: str) -> None:
+        await ws.accept()
+        spec = PAGE_BY_SLUG.get(slug)
+        if spec is None:
+            await ws.send_text(json.dumps({"type": "error", "message": f"unknown page {slug!r}"}))
+            await ws.close(code=1008)
+            return
+        seed = _int_query(ws, "seed", 0, 0, 2**31 - 1)
+        hz = _int_query(ws, "hz", DEFAULT_HZ, 1, 120)
+        conn: Connection | None = None
+        try:
+            session = spec.make(seed)
+            conn = Connection(ws, session, hz)
+            await conn.send_json(_nan_safe(session.hello()))
+            recv = asyncio.create_task(conn.receiver())
+            send = asyncio.create_task(conn.sender())
+            done, pending = await asyncio.wait({recv, send}, return_when=asyncio.FIRST_COMPLETED)
+            for t in pending:
+                t.cancel()
+            for t in pending:
+                try:
+                    await t
+                except (asyncio.CancelledError, Exception):
+                    pass
+            for t in done:
+                exc = t.exception()
+                if exc is not None and not _is_disconnect(exc):
+                    log.warning("session %s ended with %s: %s", slug, type(exc).__name__, exc)
+        except Exception as exc:  # never let one page take the server down
+            if not _is_disconnect(exc):
+                log.exception("session %s failed", slug)
+        finally:
+            if ws.client_state == WebSocketState.CONNECTED and ws.application_state == WebSocketState.CONNECTED:
+                try:
+                    await ws.close()
+                except Exception:
+                    pass
+
+    return app
+
+
+def _is_disconnect(exc: BaseException) -> bool:
+    name = type(exc).__name__
+    return isinstance(exc, WebSocketDisconnect | ConnectionError) or name in (
+        "ClientDisconnected", "ConnectionClosed", "ConnectionClosedError", "ConnectionClosedOK") or (
+        isinstance(exc, RuntimeError) and ("close" in str(exc).lower() or "disconnect" in str(exc).lower()))
+
+
+def serve(host: str = "127.0.0.1", port: int = 8000, log_level: str = "warning") -> None:
+    """Run the lab with uvicorn (blocking). Per-message compression is off: it costs more CPU than it saves here."""
+    import uvicorn
+
+    config = uvicorn.Config(create_app(), host=host, port=port, log_level=log_level, ws_per_message_deflate=False,
+                            ws_max_size=WS_MAX_SIZE)
+    uvicorn.Server(config).run()

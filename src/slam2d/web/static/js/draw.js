@@ -1,0 +1,178 @@
+// Shared drawing on <canvas>: a world view (metres, y up) fitted to the page's world bounds, and a heat map.
+// Everything drawn here was computed by the library on the server; this module only turns numbers into pixels.
+
+export const COLORS = {
+  wall: '#555', trueLm: '#222', truePath: '#2a9d3a', robot: '#2a9d3a', estPath: '#1f5fbf', estRobot: '#1f5fbf',
+  estLm: '#d62828', ellipse: 'rgba(31,95,191,0.75)', obs: 'rgba(240,140,0,0.55)', obsEllipse: 'rgba(240,140,0,0.8)',
+  particle: 'rgba(140,60,180,0.55)', good: '#2a9d3a', bad: '#d62828', newObs: '#888', scan: '#444',
+  graphEdge: 'rgba(31,95,191,0.35)', graphNode: '#1f5fbf', feature: '#d62828', trueCorner: '#2a9d3a',
+};
+
+export class WorldView {
+  constructor(canvas) {
+    this.canvas = canvas;
+    this.ctx = canvas.getContext('2d');
+    this.bounds = [0, 0, 10, 10];
+    this.fit();
+  }
+
+  setBounds(b) {
+    if (Array.isArray(b) && b.length === 4) { this.bounds = b; this.fit(); }
+  }
+
+  fit() {
+    const [x0, y0, x1, y1] = this.bounds;
+    const pad = 20;
+    const w = this.canvas.width - 2 * pad;
+    const h = this.canvas.height - 2 * pad;
+    this.scale = Math.min(w / Math.max(x1 - x0, 1e-6), h / Math.max(y1 - y0, 1e-6));
+    this.ox = pad + (w - this.scale * (x1 - x0)) / 2 - this.scale * x0;
+    this.oy = this.canvas.height - pad - (h - this.scale * (y1 - y0)) / 2 + this.scale * y0;
+  }
+
+  px(x) { return this.ox + this.scale * x; }
+  py(y) { return this.oy - this.scale * y; }
+
+  clear() {
+    const c = this.ctx;
+    c.setTransform(1, 0, 0, 1, 0, 0);
+    c.fillStyle = '#fff';
+    c.fillRect(0, 0, this.canvas.width, this.canvas.height);
+  }
+
+  segments(s, color, width = 2) {
+    if (!s || s.rows === 0) return;
+    const c = this.ctx, d = s.data;
+    c.beginPath();
+    for (let i = 0; i < s.rows; i++) {
+      c.moveTo(this.px(d[4 * i]), this.py(d[4 * i + 1]));
+      c.lineTo(this.px(d[4 * i + 2]), this.py(d[4 * i + 3]));
+    }
+    c.strokeStyle = color; c.lineWidth = width; c.stroke();
+  }
+
+  path(s, color, width = 2, dash = []) {
+    if (!s || s.rows < 2) return;
+    const c = this.ctx, d = s.data;
+    c.beginPath();
+    c.moveTo(this.px(d[0]), this.py(d[1]));
+    for (let i = 1; i < s.rows; i++) c.lineTo(this.px(d[2 * i]), this.py(d[2 * i + 1]));
+    c.setLineDash(dash); c.strokeStyle = color; c.lineWidth = width; c.stroke(); c.setLineDash([]);
+  }
+
+  // points as small squares (fast: one path, one fill)
+  dots(s, color, size = 4, stride = null) {
+    if (!s || s.rows === 0) return;
+    const c = this.ctx, d = s.data, k = stride || s.cols, h = size / 2;
+    c.beginPath();
+    for (let i = 0; i < s.rows; i++) c.rect(this.px(d[k * i]) - h, this.py(d[k * i + 1]) - h, size, size);
+    c.fillStyle = color; c.fill();
+  }
+
+  crosses(s, color, size = 4) {
+    if (!s || s.rows === 0) return;
+    const c = this.ctx, d = s.data;
+    c.beginPath();
+    for (let i = 0; i < s.rows; i++) {
+      const x = this.px(d[2 * i]), y = this.py(d[2 * i + 1]);
+      c.moveTo(x - size, y - size); c.lineTo(x + size, y + size);
+      c.moveTo(x - size, y + size); c.lineTo(x + size, y - size);
+    }
+    c.strokeStyle = color; c.lineWidth = 1.5; c.stroke();
+  }
+
+  robot(p, color, r = 0.45) {
+    if (!p || p.rows === 0) return;
+    const [x, y, th] = p.data;
+    const c = this.ctx, s = this.scale * r;
+    const cx = this.px(x), cy = this.py(y);
+    c.beginPath();
+    c.moveTo(cx + 1.6 * s * Math.cos(th), cy - 1.6 * s * Math.sin(th));
+    c.lineTo(cx + s * Math.cos(th + 2.4), cy - s * Math.sin(th + 2.4));
+    c.lineTo(cx + s * Math.cos(th - 2.4), cy - s * Math.sin(th - 2.4));
+    c.closePath();
+    c.fillStyle = color; c.fill();
+  }
+
+  // rays from a pose to points
+  rays(pose, pts, color) {
+    if (!pose || !pts || pts.rows === 0) return;
+    const c = this.ctx, d = pts.data, x = this.px(pose.data[0]), y = this.py(pose.data[1]);
+    c.beginPath();
+    for (let i = 0; i < pts.rows; i++) { c.moveTo(x, y); c.lineTo(this.px(d[2 * i]), this.py(d[2 * i + 1])); }
+    c.strokeStyle = color; c.lineWidth = 1; c.stroke();
+  }
+
+  // 95% ellipses of 2x2 covariances (row-major, 4 per row) centred on means (2 per row); all in one path.
+  // The 2x2 eigen-decomposition is closed form; k = sqrt(chi2_2(0.95)) = sqrt(5.991).
+  ellipses(means, covs, color, meanStride = 2) {
+    if (!means || !covs || covs.rows === 0) return;
+    const c = this.ctx, m = means.data, v = covs.data, n = Math.min(means.rows, covs.rows);
+    const k = Math.sqrt(5.991), seg = 24;
+    c.beginPath();
+    for (let i = 0; i < n; i++) {
+      const a = v[4 * i], b = 0.5 * (v[4 * i + 1] + v[4 * i + 2]), d = v[4 * i + 3];
+      const mean = 0.5 * (a + d), rad = Math.sqrt(Math.max(0.25 * (a - d) * (a - d) + b * b, 0));
+      const l1 = Math.sqrt(Math.max(mean + rad, 0)) * k, l2 = Math.sqrt(Math.max(mean - rad, 0)) * k;
+      const ang = 0.5 * Math.atan2(2 * b, a - d), ca = Math.cos(ang), sa = Math.sin(ang);
+      const mx = m[meanStride * i], my = m[meanStride * i + 1];
+      for (let j = 0; j <= seg; j++) {
+        const t = (2 * Math.PI * j) / seg, ex = l1 * Math.cos(t), ey = l2 * Math.sin(t);
+        const X = this.px(mx + ca * ex - sa * ey), Y = this.py(my + sa * ex + ca * ey);
+        if (j === 0) c.moveTo(X, Y); else c.lineTo(X, Y);
+      }
+    }
+    c.strokeStyle = color; c.lineWidth = 1; c.stroke();
+  }
+
+  // association lines: x,y (observation), x,y (landmark), flag (1 correct, 0 wrong)
+  matches(s) {
+    if (!s || s.rows === 0) return;
+    const c = this.ctx, d = s.data;
+    for (const ok of [1, 0]) {
+      c.beginPath();
+      for (let i = 0; i < s.rows; i++) {
+        if ((d[5 * i + 4] > 0.5 ? 1 : 0) !== ok) continue;
+        c.moveTo(this.px(d[5 * i]), this.py(d[5 * i + 1]));
+        c.lineTo(this.px(d[5 * i + 2]), this.py(d[5 * i + 3]));
+      }
+      c.strokeStyle = ok ? COLORS.good : COLORS.bad; c.lineWidth = ok ? 1.5 : 2.5; c.stroke();
+    }
+  }
+}
+
+// a grid image (values in [0,1], row 0 = lowest y) placed in the world: meta = [origin x, origin y, cell size]
+WorldView.prototype.grid = function grid(g, meta) {
+  if (!g || !meta || g.rows === 0) return;
+  const rows = g.rows, cols = g.cols, d = g.data, img = new ImageData(cols, rows);
+  for (let r = 0; r < rows; r++) {
+    const dst = (rows - 1 - r) * cols; // flip: canvas rows grow downwards, world y grows upwards
+    for (let c = 0; c < cols; c++) {
+      const v = 255 - Math.round(255 * Math.min(Math.max(d[r * cols + c], 0), 1)), k = 4 * (dst + c);
+      img.data[k] = v; img.data[k + 1] = v; img.data[k + 2] = v; img.data[k + 3] = 255;
+    }
+  }
+  const off = new OffscreenCanvas(cols, rows);
+  off.getContext('2d').putImageData(img, 0, 0);
+  const [x0, y0, res] = meta.data;
+  const c = this.ctx;
+  c.imageSmoothingEnabled = false;
+  c.drawImage(off, this.px(x0), this.py(y0 + rows * res), cols * res * this.scale, rows * res * this.scale);
+};
+
+// |correlation| matrix as an image: white 0 .. dark blue 1; drawn through a small offscreen ImageData
+export function drawHeat(canvas, s) {
+  const c = canvas.getContext('2d');
+  c.fillStyle = '#fff'; c.fillRect(0, 0, canvas.width, canvas.height);
+  if (!s || s.rows === 0) return;
+  const n = s.rows, img = new ImageData(n, n), d = s.data;
+  for (let i = 0; i < n * n; i++) {
+    const v = Math.min(Math.max(d[i], 0), 1);
+    img.data[4 * i] = 255 - 224 * v; img.data[4 * i + 1] = 255 - 160 * v; img.data[4 * i + 2] = 255 - 64 * v;
+    img.data[4 * i + 3] = 255;
+  }
+  const off = new OffscreenCanvas(n, n);
+  off.getContext('2d').putImageData(img, 0, 0);
+  c.imageSmoothingEnabled = false;
+  c.drawImage(off, 0, 0, canvas.width, canvas.height);
+}

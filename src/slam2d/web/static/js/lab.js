@@ -1,0 +1,240 @@
+// One lab page: opens the page's websocket, builds its controls from the server's parameter list, shows live
+// numbers, and draws the latest frame on every animation frame. Test hooks live on window.slamLab.
+import { decodeFrame } from './frames.js';
+import { WorldView, drawHeat, COLORS } from './draw.js';
+
+const page = document.body.dataset.page;
+const query = new URLSearchParams(location.search);
+const canvas = document.getElementById('world');
+const view = new WorldView(canvas);
+const heatCanvas = document.getElementById('heat');
+const statusEl = document.getElementById('status');
+const numbersEl = document.getElementById('numbers');
+const controlsEl = document.getElementById('controls');
+const noticesEl = document.getElementById('notices');
+const errorsEl = document.getElementById('errors');
+
+const lab = {
+  page, frames: 0, bytes: 0, drawn: 0, fps: 0, recvFps: 0, seq: -1, decodeMs: 0, drawMs: 0,
+  pose: null, estPose: null, counters: {}, values: {}, notices: [], errors: [], hello: null, connected: false,
+  sections: {},
+  send: (obj) => send(obj),
+};
+window.slamLab = lab;
+
+let ws = null;
+let latest = null;
+let drawnSeq = -1;
+let scalarNames = [];
+const paramsByName = {};
+
+function send(obj) {
+  if (ws && ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify(obj));
+}
+
+function fmt(v) {
+  if (v === null || v === undefined || Number.isNaN(v)) return '–';
+  if (typeof v !== 'number') return String(v);
+  if (Number.isInteger(v)) return String(v);
+  return Math.abs(v) >= 100 ? v.toFixed(1) : v.toFixed(3);
+}
+
+function buildNumbers(names) {
+  numbersEl.innerHTML = '';
+  for (const n of names) {
+    const row = document.createElement('div');
+    row.className = 'num';
+    row.innerHTML = `<span class="k">${n.replaceAll('_', ' ')}</span><span class="v" data-num="${n}">–</span>`;
+    numbersEl.appendChild(row);
+  }
+}
+
+function buildControls(params, actions) {
+  controlsEl.innerHTML = '';
+  for (const p of params) {
+    paramsByName[p.name] = p;
+    const wrap = document.createElement('label');
+    wrap.className = 'ctl';
+    wrap.title = p.help || '';
+    let input;
+    if (p.kind === 'choice') {
+      input = document.createElement('select');
+      for (const c of p.choices) {
+        const o = document.createElement('option');
+        o.value = c; o.textContent = c; input.appendChild(o);
+      }
+    } else if (p.kind === 'bool') {
+      input = document.createElement('input');
+      input.type = 'checkbox';
+    } else if (p.name === 'seed' || p.name === 'landmarks') {
+      input = document.createElement('input');
+      input.type = 'number'; input.min = p.lo; input.max = p.hi; input.step = p.step || 1;
+    } else {
+      input = document.createElement('input');
+      input.type = 'range'; input.min = p.lo; input.max = p.hi; input.step = p.step || 'any';
+    }
+    input.id = `ctl-${p.name}`;
+    input.dataset.param = p.name;
+    const text = document.createElement('span');
+    text.className = 'label';
+    text.textContent = p.label;
+    const out = document.createElement('output');
+    out.id = `out-${p.name}`;
+    wrap.append(text, input, out);
+    controlsEl.appendChild(wrap);
+    input.addEventListener('change', () => {
+      let value;
+      if (p.kind === 'bool') value = input.checked;
+      else if (p.kind === 'choice') value = input.value;
+      else value = Number(input.value);
+      send({ type: 'param', name: p.name, value });
+    });
+    if (input.type === 'range') input.addEventListener('input', () => { out.textContent = fmt(Number(input.value)); });
+  }
+  for (const a of actions) {
+    const b = document.createElement('button');
+    b.id = `act-${a.name}`;
+    b.textContent = a.label;
+    b.addEventListener('click', () => send({ type: 'action', name: a.name }));
+    controlsEl.appendChild(b);
+  }
+}
+
+function applyState(msg) {
+  lab.values = msg.values || {};
+  lab.notices = msg.notices || [];
+  for (const [name, v] of Object.entries(lab.values)) {
+    const input = document.getElementById(`ctl-${name}`);
+    if (!input || document.activeElement === input) continue;
+    if (input.type === 'checkbox') input.checked = !!v; else input.value = v;
+    const out = document.getElementById(`out-${name}`);
+    if (out && paramsByName[name] && ['float', 'int'].includes(paramsByName[name].kind)) out.textContent = fmt(v);
+  }
+  noticesEl.innerHTML = '';
+  for (const n of lab.notices) {
+    const d = document.createElement('div');
+    d.className = 'notice';
+    d.textContent = n;
+    noticesEl.appendChild(d);
+  }
+  if (msg.bounds) view.setBounds(msg.bounds);
+}
+
+function onText(text) {
+  const msg = JSON.parse(text);
+  if (msg.type === 'hello') {
+    lab.hello = msg;
+    scalarNames = msg.scalars || [];
+    buildNumbers(scalarNames);
+    buildControls(msg.params || [], msg.actions || []);
+    applyState(msg);
+  } else if (msg.type === 'state') {
+    applyState(msg);
+  } else if (msg.type === 'error') {
+    lab.errors.push(msg.message);
+    const d = document.createElement('div');
+    d.className = 'error';
+    d.textContent = msg.message;
+    errorsEl.prepend(d);
+    while (errorsEl.childElementCount > 3) errorsEl.lastChild.remove();
+  }
+}
+
+function onFrame(buf) {
+  const t0 = performance.now();
+  const f = decodeFrame(buf);
+  lab.decodeMs = performance.now() - t0;
+  lab.frames += 1;
+  lab.bytes += buf.byteLength;
+  lab.seq = f.seq;
+  latest = f;
+  const s = f.sections;
+  if (s.NUMS) {
+    const c = {};
+    scalarNames.forEach((n, i) => { c[n] = s.NUMS.data[i]; });
+    lab.counters = c;
+  }
+  if (s.TPOS) lab.pose = Array.from(s.TPOS.data);
+  if (s.EPOS) lab.estPose = Array.from(s.EPOS.data);
+  lab.sections = Object.fromEntries(Object.entries(s).map(([k, v]) => [k, [v.rows, v.cols]]));
+}
+
+function connect() {
+  const proto = location.protocol === 'https:' ? 'wss' : 'ws';
+  const qs = new URLSearchParams();
+  for (const k of ['seed', 'hz']) if (query.has(k)) qs.set(k, query.get(k));
+  ws = new WebSocket(`${proto}://${location.host}/ws/${page}?${qs}`);
+  ws.binaryType = 'arraybuffer';
+  ws.onopen = () => { lab.connected = true; statusEl.textContent = 'connected'; };
+  ws.onclose = () => { lab.connected = false; statusEl.textContent = 'disconnected from the lab server'; };
+  ws.onmessage = (ev) => { if (typeof ev.data === 'string') onText(ev.data); else onFrame(ev.data); };
+}
+
+function draw() {
+  if (!latest || latest.seq === drawnSeq) return;
+  const t0 = performance.now();
+  const s = latest.sections;
+  view.clear();
+  view.grid(s.GRID, s.GRDM);
+  if (!s.GRID) view.segments(s.WALL, COLORS.wall, 2);
+  view.dots(s.SCAN, COLORS.scan, 2);
+  view.segments(s.GEDG, COLORS.graphEdge, 1);
+  view.path(s.TPTH, COLORS.truePath, 2);
+  view.path(s.EPTH, COLORS.estPath, 2, [6, 4]);
+  view.crosses(s.TLMK, COLORS.trueLm, 4);
+  if (s.OCOV) view.ellipses(s.OBSV, s.OCOV, COLORS.obsEllipse);
+  view.rays(s.EPOS, s.OBSV, COLORS.obs);
+  view.ellipses(s.ELMK, s.ECOV, COLORS.ellipse);
+  view.dots(s.ELMK, COLORS.estLm, 5);
+  view.dots(s.GNOD, COLORS.graphNode, 3);
+  view.dots(s.PART, COLORS.particle, 3, 3);
+  view.matches(s.MTCH);
+  view.dots(s.NEWO, COLORS.newObs, 6);
+  view.dots(s.TCOR, COLORS.trueCorner, 9);
+  view.crosses(s.FEAT, COLORS.feature, 5);
+  if (s.PCOV && s.EPOS) view.ellipses(s.EPOS, s.PCOV, COLORS.ellipse, 3);
+  view.robot(s.TPOS, COLORS.robot);
+  view.robot(s.EPOS, COLORS.estRobot, 0.35);
+  if (heatCanvas) drawHeat(heatCanvas, s.HEAT);
+  for (const [n, v] of Object.entries(lab.counters)) {
+    const el = numbersEl.querySelector(`[data-num="${n}"]`);
+    if (el) el.textContent = fmt(v);
+  }
+  drawnSeq = latest.seq;
+  lab.drawn += 1;
+  lab.drawMs = performance.now() - t0;
+}
+
+// frame-rate bookkeeping: frames drawn and received per second, over 1 s windows
+let winStart = performance.now(), winDrawn = 0, winFrames = 0;
+function loop() {
+  draw();
+  const now = performance.now();
+  if (now - winStart >= 1000) {
+    lab.fps = ((lab.drawn - winDrawn) * 1000) / (now - winStart);
+    lab.recvFps = ((lab.frames - winFrames) * 1000) / (now - winStart);
+    winStart = now; winDrawn = lab.drawn; winFrames = lab.frames;
+    const p = lab.pose ? lab.pose.map((v) => v.toFixed(2)).join(', ') : '–';
+    statusEl.textContent = `${lab.recvFps.toFixed(1)} frames/s received, ${lab.fps.toFixed(1)} drawn · ` +
+      `pose (${p}) · ${(lab.bytes / Math.max(lab.frames, 1) / 1024).toFixed(1)} KiB/frame`;
+  }
+  requestAnimationFrame(loop);
+}
+
+const DRIVE = new Set(['ArrowUp', 'ArrowDown', 'ArrowLeft', 'ArrowRight']);
+window.addEventListener('keydown', (e) => {
+  if (!DRIVE.has(e.key)) return;
+  if (e.target && ['INPUT', 'SELECT'].includes(e.target.tagName)) return;
+  e.preventDefault();
+  if (!e.repeat) send({ type: 'key', key: e.key, down: true });
+});
+window.addEventListener('keyup', (e) => {
+  if (!DRIVE.has(e.key)) return;
+  if (e.target && ['INPUT', 'SELECT'].includes(e.target.tagName)) return;
+  e.preventDefault();
+  send({ type: 'key', key: e.key, down: false });
+});
+window.addEventListener('blur', () => { for (const k of DRIVE) send({ type: 'key', key: k, down: false }); });
+
+connect();
+requestAnimationFrame(loop);

@@ -1,0 +1,180 @@
+"""The lab server under a plain websocket client: bad input, abrupt disconnects, many sessions at once."""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import json
+import socket
+import urllib.request
+from typing import Any
+
+import numpy as np
+import pytest
+import websockets
+
+from slam2d.web.frames import decode_frame
+from slam2d.web.pages import PAGE_BY_SLUG
+
+
+@pytest.fixture
+def server(lab_process: Any) -> Any:
+    return lab_process
+
+
+async def _hello(ws: Any) -> dict[str, Any]:
+    while True:
+        msg = await asyncio.wait_for(ws.recv(), 10)
+        if isinstance(msg, str):
+            data = json.loads(msg)
+            if data["type"] == "hello":
+                return data
+
+
+async def _next_json(ws: Any, kind: str) -> dict[str, Any]:
+    while True:
+        msg = await asyncio.wait_for(ws.recv(), 10)
+        if isinstance(msg, str):
+            data = json.loads(msg)
+            if data["type"] == kind:
+                return data
+
+
+async def _next_frame(ws: Any) -> tuple[int, dict[str, np.ndarray]]:
+    while True:
+        msg = await asyncio.wait_for(ws.recv(), 10)
+        if isinstance(msg, bytes):
+            return decode_frame(msg)
+
+
+def _run(coro: Any) -> Any:
+    # in a thread of its own: Playwright's sync API keeps an event loop running in the main thread
+    with concurrent.futures.ThreadPoolExecutor(1) as ex:
+        return ex.submit(asyncio.run, coro).result()
+
+
+def test_binds_loopback_only(server: Any) -> None:
+    addr, _ = server
+    port = int(addr.split(":")[1])
+    # reachable on 127.0.0.1 ...
+    assert urllib.request.urlopen(f"http://{addr}/api/status", timeout=5).status == 200
+    # ... and not on the machine's other addresses
+    other = [ip for ip in {a[4][0] for a in socket.getaddrinfo(socket.gethostname(), None, socket.AF_INET)}
+             if not ip.startswith("127.")]
+    for ip in other:
+        with socket.socket() as s:
+            s.settimeout(1)
+            assert s.connect_ex((ip, port)) != 0, f"lab reachable on {ip}"
+
+
+def test_malformed_and_oversized_messages_get_errors_and_the_session_lives_on(server: Any) -> None:
+    addr, proc = server
+
+    async def go() -> None:
+        async with websockets.connect(f"ws://{addr}/ws/simulator?hz=20", compression=None) as ws:
+            hello = await _hello(ws)
+            assert "step" in hello["scalars"]
+            bad: list[str | bytes] = [
+                "not json", "[1, 2, 3]", "{\"type\": 42}", json.dumps({"type": "param", "name": "nope", "value": 1}),
+                json.dumps({"type": "param", "name": "sensor_range_m", "value": "far"}),
+                json.dumps({"type": "param", "name": "sensor_range_m", "value": 1e9}),
+                json.dumps({"type": "param", "name": "sensor_range_m", "value": float("nan")}),
+                json.dumps({"type": "param", "name": "seed", "value": 1.5}),
+                json.dumps({"type": "key", "key": "Escape", "down": True}),
+                json.dumps({"type": "action", "name": "format_disk"}),
+                "[" * 5000, "[" * 2000, "x" * 100_000, b"\x00\x01binary",
+                '{"type": "param", "name": "sensor_range_m", "value": 1' + "0" * 400 + "}",
+                json.dumps({"type": "param", "name": "drive", "value": {"nested": [1, 2]}}),
+                json.dumps({"type": "key", "key": ["ArrowUp"], "down": True}),
+                "null", '""',
+            ]
+            for m in bad:
+                await ws.send(m)
+                err = await _next_json(ws, "error")
+                assert err["message"]
+            # still alive and obeying valid commands
+            await ws.send(json.dumps({"type": "param", "name": "sensor_range_m", "value": 3.5}))
+            state = await _next_json(ws, "state")
+            assert state["values"]["sensor_range_m"] == 3.5
+            seq1, _ = await _next_frame(ws)
+            seq2, _ = await _next_frame(ws)
+            assert seq2 > seq1
+
+        # a message above the protocol limit closes that connection (code 1009); the server keeps serving
+        async with websockets.connect(f"ws://{addr}/ws/simulator?hz=20", compression=None,
+                                      max_size=None) as ws:
+            await _hello(ws)
+            # the server may close while the client is still sending: both count as "closed on the client"
+            with pytest.raises((websockets.ConnectionClosed, ConnectionError)):
+                await ws.send("y" * (2 << 20))
+                for _ in range(1000):
+                    await asyncio.wait_for(ws.recv(), 10)
+        async with websockets.connect(f"ws://{addr}/ws/no-such-page", compression=None) as ws:
+            err = await _next_json(ws, "error")
+            assert "no-such-page" in err["message"]
+
+    _run(go())
+    assert proc.poll() is None
+    assert urllib.request.urlopen(f"http://{addr}/api/status", timeout=5).status == 200
+
+
+def test_abrupt_disconnects_do_not_hurt_the_server(server: Any) -> None:
+    addr, proc = server
+    host, port = addr.split(":")
+    # half-open handshakes and sockets dropped mid-stream
+    for _ in range(5):
+        s = socket.create_connection((host, int(port)))
+        s.sendall(b"GET /ws/simulator HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                  b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n")
+        s.recv(100)
+        s.close()
+
+    async def go() -> None:
+        for slug in ("simulator", "ekf", "association", "maps"):
+            ws = await websockets.connect(f"ws://{addr}/ws/{slug}?hz=60", compression=None)
+            await _hello(ws)
+            await _next_frame(ws)
+            ws.transport.abort()  # no close handshake: the TCP connection just vanishes
+        async with websockets.connect(f"ws://{addr}/ws/simulator?hz=20", compression=None) as ws:
+            await _hello(ws)
+            await _next_frame(ws)
+
+    _run(go())
+    assert proc.poll() is None
+
+
+def test_twenty_concurrent_sessions_do_not_share_state(server: Any) -> None:
+    """Each of 20 simultaneous sessions (own seed) ends exactly where an isolated in-process session does."""
+    addr, _ = server
+    n, steps = 20, 25
+    commands = [{"type": "param", "name": "paused", "value": True},
+                {"type": "param", "name": "drive", "value": "explore"},
+                {"type": "action", "name": "reset"}] + [{"type": "action", "name": "step"}] * steps
+
+    async def one(seed: int) -> tuple[int, list[float], list[float]]:
+        async with websockets.connect(f"ws://{addr}/ws/simulator?hz=20&seed={seed}", compression=None) as ws:
+            hello = await _hello(ws)
+            assert hello["values"]["seed"] == seed
+            names = hello["scalars"]
+            for c in commands:
+                await ws.send(json.dumps(c))
+            while True:
+                _, sec = await _next_frame(ws)
+                nums = dict(zip(names, sec["NUMS"][0].tolist(), strict=True))
+                if nums["step"] == steps:
+                    return seed, sec["TPOS"][0].tolist(), sec["EPOS"][0].tolist()
+
+    async def go() -> list[tuple[int, list[float], list[float]]]:
+        return list(await asyncio.gather(*(one(s) for s in range(n))))
+
+    results = _run(go())
+    assert sorted(r[0] for r in results) == list(range(n))
+    for seed, tpos, epos in results:
+        ref = PAGE_BY_SLUG["simulator"].make(seed)
+        for c in commands:
+            ref.apply(c)
+        assert ref.sim.index == steps
+        np.testing.assert_allclose(tpos, ref.sim.pose, atol=1e-4)
+        np.testing.assert_allclose(epos, ref.snap.pose, atol=1e-4)
+    # and the seeds really give different runs (odometry noise differs from the first step)
+    assert len({tuple(np.round(r[2], 5)) for r in results}) == n
