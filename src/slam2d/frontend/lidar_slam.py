@@ -74,10 +74,11 @@ class LidarSlamConfig:
     """Cauchy kernel scale on loop edges, in standard deviations (0: plain least squares)."""
     solver_iterations: int = 10
     """Gauss-Newton iterations per pose-graph solve."""
-    track_scans: bool = False
+    track_scans: bool = True
     """match every scan (not only keyframes) against the local map as it arrives: the next keyframe starts from the
     tracked pose instead of a multi-scan odometry guess, and scans between keyframes keep their matched pose
-    relative to their keyframe (needed when odometry is poor or out of step with the laser, e.g. fr079)."""
+    relative to their keyframe (needed when odometry is poor or out of step with the laser, e.g. fr079; False:
+    keyframes only, about 3x faster)."""
     refine_scans: bool = False
     """after the graph solve, match every non-keyframe scan to the local map around its keyframe (slower: one ICP
     per scan) instead of placing it by odometry from its keyframe."""
