@@ -125,7 +125,7 @@ def test_cli_bad_dataset_name_and_bad_override(tmp_path: Path, capsys: pytest.Ca
 def test_aces_relation_errors() -> None:
     """ACES, Kümmerle et al. relation errors.
 
-    Measured: 0.048 +- 0.055 m, 0.84 +- 1.22 deg (odometry: 0.55 m, 2.3 deg).
+    Measured (default config, scans tracked): 0.038 +- 0.034 m, 0.37 +- 0.48 deg (odometry: 0.55 m, 2.3 deg).
     """
     log = read_carmen(dataset_path("radish-laser-logs", "aces.clf.bz2"))
     rs, rel = read_relations(dataset_path("radish-laser-logs", "aces.relations"))
@@ -133,7 +133,7 @@ def test_aces_relation_errors() -> None:
     slam = relation_errors(log.stamps_s, res.poses, rs, rel).summary()
     odo = relation_errors(log.stamps_s, log.poses, rs, rel).summary()
     assert slam["missing"] == 0 and slam["relations"] == 1279
-    assert slam["trans_mean_m"] < 0.08 and slam["rot_mean_deg"] < 1.2
+    assert slam["trans_mean_m"] < 0.06 and slam["rot_mean_deg"] < 0.6
     assert slam["trans_mean_m"] < 0.2 * odo["trans_mean_m"]
     assert res.loops_accepted > 20
 
@@ -150,3 +150,23 @@ def test_tracking_every_scan_helps_between_keyframes(tmp_path: Path) -> None:
         err[track] = relation_errors(c.stamps_s, res.poses, rs, rel).summary()
     assert err[True]["rot_mean_deg"] < err[False]["rot_mean_deg"]
     assert err[True]["trans_mean_m"] < 0.05
+
+
+@pytest.mark.slow
+def test_fr079_needs_scan_tracking() -> None:
+    """fr079 (first 1600 scans, 431 relations): odometry lags the laser in turns. Measured: default mode
+    0.61 m / 4.3 deg (the map folds), --track-scans 0.054 m / 0.48 deg."""
+    log = read_carmen(dataset_path("radish-laser-logs", "fr079.clf.bz2"))
+    rs, rel = read_relations(dataset_path("radish-laser-logs", "fr079.relations"))
+    n = 1600
+    st = log.stamps_s[:n]
+    keep = (rs.min(axis=1) >= st[0]) & (rs.max(axis=1) <= st[-1])
+    assert keep.sum() > 400
+    out = {}
+    for track in (False, True):
+        res = run_lidar_slam(log.poses[:n], log.ranges_m[:n], log.angles_rad, log.max_range_m,
+                             LidarSlamConfig(track_scans=track))
+        out[track] = relation_errors(st, res.poses, rs[keep], rel[keep]).summary()
+    assert out[True]["missing"] == 0
+    assert out[True]["trans_mean_m"] < 0.08 and out[True]["rot_mean_deg"] < 0.8
+    assert out[False]["trans_mean_m"] > 3 * out[True]["trans_mean_m"]

@@ -23,8 +23,9 @@ def register(sub: Any) -> None:
     p.add_argument("--out", default=None, help="occupancy map PNG (default <dataset>_map.png)")
     p.add_argument("--resolution", type=float, default=0.05, help="grid cell size in m (default 0.05)")
     p.add_argument("--no-loops", action="store_true", help="scan-matching odometry only (no loop closure)")
-    p.add_argument("--track-scans", action="store_true",
-                   help="match every scan against the local map as it arrives (for poor or lagging odometry)")
+    p.add_argument("--no-track-scans", action="store_true",
+                   help="match keyframes only, placing the scans in between by odometry (about 3x faster; "
+                        "fails when odometry lags the laser, e.g. fr079)")
     p.add_argument("--refine-scans", action="store_true",
                    help="also match every non-keyframe scan by ICP (slower; better short relations)")
     p.add_argument("--relations", default=None, help="relations file (default: <log>.relations if present)")
@@ -75,7 +76,7 @@ def cmd(args: argparse.Namespace) -> int:
     if log.num_scans < 2:
         raise ValueError(f"{path}: fewer than 2 usable scans")
     cfg = with_overrides(LidarSlamConfig(loop_closure=not args.no_loops, refine_scans=args.refine_scans,
-                                         track_scans=args.track_scans),
+                                         track_scans=not args.no_track_scans),
                          overrides_from(args))
     t1 = time.perf_counter()
     res = run_lidar_slam(log.poses, log.ranges_m, log.angles_rad, log.max_range_m, cfg)
