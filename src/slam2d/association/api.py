@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slam2d.association.base import AssociationConfig, AssociationResult, Candidates, associate_known
+from slam2d.association.base import CLUTTER, AssociationConfig, AssociationResult, Candidates, associate_known
 from slam2d.association.gating import Problem, build_problem, finalize, joint_nis
 from slam2d.association.individual import individual_compatibility
 from slam2d.association.jcbb import jcbb
@@ -13,14 +13,21 @@ from slam2d.association.ransac import ransac
 from slam2d.log import Observations
 
 
-def _known(problem: Problem, observations: Observations, candidates: Candidates) -> AssociationResult:
+def _known(problem: Problem, observations: Observations, candidates: Candidates,
+           outlier_gate: bool) -> AssociationResult:
     base = associate_known(observations, candidates)
-    obs = np.flatnonzero(base.assignment >= 0).astype(np.int64)
+    assignment = base.assignment.copy()
+    obs = np.flatnonzero(assignment >= 0).astype(np.int64)
     index = {int(c): k for k, c in enumerate(problem.ids)}
-    cand = np.array([index[int(c)] for c in base.assignment[obs]], dtype=np.int64)
-    d2 = np.full(len(base.assignment), np.nan)
+    cand = np.array([index[int(c)] for c in assignment[obs]], dtype=np.int64)
+    d2 = np.full(len(assignment), np.nan)
     d2[obs] = problem.d2[obs, cand]
-    return AssociationResult(base.assignment, d2, joint_nis(problem, obs, cand))
+    if outlier_gate and obs.size:
+        # an id the source reports can still be wrong (a misread barcode): outside the wide gate it is clutter
+        bad = d2[obs] > problem.new_gate
+        assignment[obs[bad]] = CLUTTER
+        obs, cand = obs[~bad], cand[~bad]
+    return AssociationResult(assignment, d2, joint_nis(problem, obs, cand))
 
 
 def associate(observations: Observations, candidates: Candidates, config: AssociationConfig, *,
@@ -36,7 +43,7 @@ def associate(observations: Observations, candidates: Candidates, config: Associ
     """
     problem = build_problem(observations, candidates, config)
     if config.method == "known":
-        return _known(problem, observations, candidates)
+        return _known(problem, observations, candidates, config.known_outlier_gate)
     if problem.num_obs == 0 or problem.num_candidates == 0:
         return finalize(problem, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
     if config.method == "nn":

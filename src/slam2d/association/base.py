@@ -43,6 +43,9 @@ class AssociationConfig:
     """nn only: largest Euclidean distance in measurement space ([m, rad] stacked) accepted as a match."""
     descriptor_max_distance: float = 0.0
     """when > 0 and descriptors exist on both sides, pairs farther apart than this (Euclidean) are not matched."""
+    known_outlier_gate: bool = True
+    """known only: a source id whose measurement falls outside the wide gate (``new_landmark_probability``) of
+    that landmark is treated as clutter -- real sources misread ids (MRCLAM barcodes)."""
     ransac_iterations: int = 100
     """ransac only: number of minimal-set hypotheses."""
     ransac_min_pairs: int = 2

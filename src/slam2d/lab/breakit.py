@@ -111,7 +111,9 @@ def breakit_experiment(
             assert base.true_poses is not None and base.true_landmarks is not None
             damage = np.random.default_rng(np.random.SeedSequence([seed, 0xB4EA]))
             for cond in CONDITIONS:
-                over: dict[str, object] = {"association.method": "known"} if "association" in fields else {}
+                # known ids, trusted blindly: the damage must reach the back end, not be gated away
+                over: dict[str, object] = ({"association.method": "known", "association.known_outlier_gate": False}
+                                           if "association" in fields else {})
                 log = base
                 if cond == "no-loop-closure":
                     log = forget_revisits(base, 60)
