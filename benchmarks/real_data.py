@@ -22,7 +22,8 @@ PLAN = [
     # (dataset, robot, estimator, overrides)
     *[("mrclam", r, e, o) for r in range(1, 6) for e, o in [
         ("dead-reckoning", {}), ("ekf", {"association.method": "known"}), ("ekf", {"association.method": "jcbb"}),
-        ("fastslam2", {"association.method": "known"}), ("graph", {"association.method": "known",
+        ("fastslam2", {"association.method": "known"}), ("fastslam", {"association.method": "mahalanobis"}),
+        ("graph", {"association.method": "known",
                                                                    "optimize_every": "50"})]],
     ("victoria-park", 1, "dead-reckoning", {}),
     ("victoria-park", 1, "ekf", {"association.method": "mahalanobis", "use_gps": "false"}),

@@ -29,8 +29,9 @@ below ``new_landmark_likelihood``. The gate probabilities of :class:`Association
 per-particle ML is the textbook rule, and the threshold is the weight given to "new landmark".
 
 Existence counters (per-particle ML only; the map management of Probabilistic Robotics ch. 13): a landmark
-starts with evidence 2, gains 1 per sighting and loses 1 per step in which it should have been seen (predicted
-inside 90% of the sensor's range and field of view) but was not; at 0 its slot is freed. With known association
+starts with evidence 2g, gains g per sighting and loses 1 per step in which it should have been seen (predicted
+inside 90% of the sensor's range and field of view) but was not; at 0 its slot is freed. g = round(1/p_d) with the
+sensor's detection probability p_d, so a sensor that reports few of the landmarks it sees keeps its map. With known association
 nothing is pruned.
 
 Cost: FastSLAM 1.0 with known ids updates a scan's landmarks in one (M, k) batch; otherwise one vectorised
@@ -595,7 +596,8 @@ class FastSLAM:
             mu[is_new], sig[is_new] = mu0, sig0
         p.lm_mean[rows, c] = mu
         p.lm_cov[rows, c] = sig
-        p.lm_evidence[rows, c] = np.where(is_new, _EVIDENCE_NEW, p.lm_evidence[rows, c] + 1)
+        gain = self._evidence_gain
+        p.lm_evidence[rows, c] = np.where(is_new, _EVIDENCE_NEW * gain, p.lm_evidence[rows, c] + gain)
         return ll
 
     # -- one step ------------------------------------------------------------------------------------------------
@@ -644,7 +646,8 @@ class FastSLAM:
                 mu[is_new], sig[is_new] = mu0[is_new], sig0[is_new]
             p.lm_mean[:, slots] = mu
             p.lm_cov[:, slots] = sig
-            p.lm_evidence[:, slots] = np.where(is_new, _EVIDENCE_NEW, p.lm_evidence[:, slots] + 1)
+            gain = self._evidence_gain
+            p.lm_evidence[:, slots] = np.where(is_new, _EVIDENCE_NEW * gain, p.lm_evidence[:, slots] + gain)
             dlogw += np.where(is_new, log_p0, ll).sum(axis=1)
             assoc_slots[use] = slots[:, None]
         elif cfg.version == 1:
@@ -705,6 +708,12 @@ class FastSLAM:
         shown = assoc_slots[:, best]
         for j in np.flatnonzero(shown >= 0):
             self._assoc[j] = self._slot_ids[shown[j]] if self.known else shown[j]
+
+    @property
+    def _evidence_gain(self) -> int:
+        """Evidence a sighting adds: 1/p_d misses, so a sensor that rarely reports what it sees (p_d small) does not
+        make its landmarks vanish between sightings."""
+        return max(1, round(1.0 / max(self.config.sensor.detection_prob, 0.05)))
 
     def _count_misses(self, cand: IntArray, valid: BoolArray, observed: IntArray) -> None:
         """Existence counters: -1 for each landmark predicted well inside the sensor's view and not
