@@ -31,8 +31,8 @@ per-particle ML is the textbook rule, and the threshold is the weight given to "
 Existence counters (per-particle ML only; the map management of Probabilistic Robotics ch. 13): a landmark
 starts with evidence 2g, gains g per sighting and loses 1 per step in which it should have been seen (predicted
 inside 90% of the sensor's range and field of view) but was not; at 0 its slot is freed. g = round(1/p_d) with the
-sensor's detection probability p_d, so a sensor that reports few of the landmarks it sees keeps its map. With known association
-nothing is pruned.
+sensor's detection probability p_d, so a sensor that reports few of the landmarks it sees keeps its map. With known
+association nothing is pruned.
 
 Cost: FastSLAM 1.0 with known ids updates a scan's landmarks in one (M, k) batch; otherwise one vectorised
 iteration per observation. Per-particle ML looks once per step at every particle's whole map (a cheap O(M N)
