@@ -36,3 +36,10 @@ def _load(name):
     from slam2d.io.datasets import load_dataset
 
     return load_dataset(name)
+
+
+def test_beacons_with_too_few_ranges_are_left_out():
+    log = slam2d.simulate("grid", seed=0, steps=3, landmarks=20)
+    res = range_only_slam(log, RangeOnlyConfig(range_std_m=0.1))
+    counts = np.bincount(log.obs_id[log.obs_id >= 0])
+    assert set(res.beacon_ids.tolist()) == set(np.flatnonzero(counts >= 3).tolist())

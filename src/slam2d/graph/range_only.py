@@ -55,7 +55,8 @@ class RangeOnlyResult:
     beacons: Array
     beacon_ids: NDArray[np.int64]
     dead_reckoning: Array
-    summary: Summary
+    summary: Summary | None
+    """None when no beacon could be placed (the trajectory is then the dead-reckoned one)."""
 
 
 def dead_reckon(initial_pose: Array, odometry: Array) -> Array:
@@ -87,10 +88,13 @@ def range_only_slam(log: Log, config: RangeOnlyConfig | None = None) -> RangeOnl
 def solve_range_only(initial_pose: Array, odometry: Array, obs_step: NDArray[np.int64], obs_id: NDArray[np.int64],
                      obs_range: Array, cfg: RangeOnlyConfig) -> RangeOnlyResult:
     """The batch problem from arrays. Shapes: (3,), (T,3), (K,), (K,), (K,)."""
-    known = obs_id >= 0
-    if not np.any(known):
-        raise ValueError("range-only SLAM needs observations with beacon ids (obs_id >= 0)")
     dr = dead_reckon(initial_pose, odometry)
+    known = obs_id >= 0
+    # a beacon ranged fewer than 3 times cannot be placed: its ranges are left out
+    counts = dict(zip(*np.unique(obs_id[known], return_counts=True), strict=True))
+    known &= np.array([counts.get(int(i), 0) >= 3 for i in obs_id], dtype=bool)
+    if not np.any(known):
+        return RangeOnlyResult(dr, np.zeros((0, 2)), np.zeros(0, np.int64), dr, None)
     steps, ids = obs_step[known], obs_id[known]
     ranges = obs_range[known] - cfg.range_bias_m
     beacon_ids = np.unique(ids)
@@ -160,4 +164,4 @@ class RangeOnlyGraph:
             return Estimate(pose=self._pose.copy(), extras={"state_dim": 3})
         return Estimate(pose=r.trajectory[-1].copy(), landmarks=r.beacons.copy(), landmark_ids=r.beacon_ids.copy(),
                         extras={"trajectory": r.trajectory.copy(), "state_dim": int(r.trajectory.size + r.beacons.size),
-                                "iterations": r.summary.iterations})
+                                "iterations": r.summary.iterations if r.summary is not None else 0})
