@@ -684,7 +684,7 @@ class EKFSLAM:
         drop = np.zeros(self._ids.shape[0], dtype=bool)
         # a sensor that reports a visible landmark only with probability p_d needs 1/p_d times more misses to say
         # as much; a confirmed landmark with a source id (known association) is never spurious, so it stays
-        scale = 1.0 / max(cfg.sensor.detection_prob, 0.05)
+        scale = cfg.sensor.misses_per_sighting
         if cfg.tentative_max_misses:
             drop |= tentative & (self._misses >= np.ceil(cfg.tentative_max_misses * scale))
         if cfg.confirmed_max_misses and cfg.association.method != "known":

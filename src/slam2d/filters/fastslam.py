@@ -713,7 +713,7 @@ class FastSLAM:
     def _evidence_gain(self) -> int:
         """Evidence a sighting adds: 1/p_d misses, so a sensor that rarely reports what it sees (p_d small) does not
         make its landmarks vanish between sightings."""
-        return max(1, round(1.0 / max(self.config.sensor.detection_prob, 0.05)))
+        return max(1, round(self.config.sensor.misses_per_sighting))
 
     def _count_misses(self, cand: IntArray, valid: BoolArray, observed: IntArray) -> None:
         """Existence counters: -1 for each landmark predicted well inside the sensor's view and not

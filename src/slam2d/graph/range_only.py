@@ -126,13 +126,15 @@ class RangeOnlyGraphConfig:
     robust_kernel: str = "huber"
     """kernel on the range factors."""
 
+    def __post_init__(self) -> None:
+        RangeOnlyConfig(range_std_m=self.sensor.range_std_m, robust_kernel=self.robust_kernel)  # same rules
+
 
 class RangeOnlyGraph:
     """Estimator-protocol shell: records odometry and ranges, solves the batch problem in ``finalize``."""
 
     def __init__(self, config: RangeOnlyGraphConfig | None = None) -> None:
         self.config = config or RangeOnlyGraphConfig()
-        RangeOnlyConfig(range_std_m=self.config.sensor.range_std_m, robust_kernel=self.config.robust_kernel)
 
     def reset(self, initial_pose: Array, *, rng: np.random.Generator) -> None:
         self._start = np.asarray(initial_pose, dtype=np.float64).copy()

@@ -50,6 +50,12 @@ class SensorConfig:
             raise ValueError(f"SensorConfig.descriptor_dim must be >= 0 (got {self.descriptor_dim})")
 
     @property
+    def misses_per_sighting(self) -> float:
+        """How many unreported in-view steps one sighting is worth: 1/detection_prob (capped at 20), so map
+        management does not drop landmarks that a sensor with a low detection probability simply did not report."""
+        return 1.0 / max(self.detection_prob, 0.05)
+
+    @property
     def covariance(self) -> Array:
         """R = diag(range_std^2, bearing_std^2)."""
         return np.diag([self.range_std_m**2, self.bearing_std_rad**2])
