@@ -23,7 +23,7 @@ from slam2d.io.datasets._common import (
 )
 from slam2d.io.datasets.mrclam import load_mrclam
 from slam2d.io.datasets.plaza import load_plaza
-from slam2d.io.datasets.victoria import CAR_A_M, CAR_B_M, CAR_H_M, CAR_L_M, load_victoria
+from slam2d.io.datasets.victoria import CAR_A_M, CAR_B_M, CAR_H_M, CAR_L_M, STEERING_OFFSET_RAD, load_victoria
 from slam2d.lab.registry import make_config
 from slam2d.models.motion import MotionNoise, sample_odometry
 from slam2d.models.sensors import range_bearing
@@ -264,8 +264,8 @@ def test_victoria_ackermann_matches_published_laser_model(tmp_path: Path):
     assert log.obs_descriptor is not None and log.obs_descriptor.shape == (len(log.obs_step), 1)
     # bearing: beam angle minus pi/2 (pi/2 = straight ahead -> 0)
     assert np.allclose(np.sort(np.unique(np.round(log.obs_bearing_rad, 9))), [0.0, 0.1, 0.2])
-    # independent reference: Euler integration of the Guivant-Nebot laser-point equations
-    steer, v = 0.15, 3.0
+    # independent reference: Euler integration of the Guivant-Nebot laser-point equations (with the steering offset)
+    steer, v = 0.15 + STEERING_OFFSET_RAD, 3.0
     vc = v / (1 - np.tan(steer) * CAR_H_M / CAR_L_M)
     h = 2e-5
     tan_s = math.tan(steer)
