@@ -90,8 +90,8 @@ def raw_folder(path: str | Path) -> Path:
 
 
 def load_victoria(path: str | Path, *, max_steps: int | None = None, max_time_s: float | None = None,
-                  descriptors: bool = True, max_range_m: float | None = DEFAULT_MAX_RANGE_M, laser_forward_m: float = CAR_A_M,
-                  steering_offset_rad: float = STEERING_OFFSET_RAD) -> Log:
+                  descriptors: bool = True, max_range_m: float | None = DEFAULT_MAX_RANGE_M,
+                  laser_forward_m: float = CAR_A_M, steering_offset_rad: float = STEERING_OFFSET_RAD) -> Log:
     """Load the raw Victoria Park run in ``path`` (the staged folder or its ``raw/``) as a :class:`Log`.
 
     See the module docstring for the conventions. ``max_steps`` / ``max_time_s`` cut the run. ``max_range_m`` drops
