@@ -416,7 +416,7 @@ def test_mrclam_run_starts_where_ground_truth_starts(tmp_path: Path):
         load_mrclam(tmp_path / "M", 1)
 
 
-def test_cli_turns_gps_off_for_evaluation_only_gps(tmp_path: Path, monkeypatch):
+def test_evaluation_only_gps_is_not_fused_unless_asked(tmp_path: Path, monkeypatch):
     from dataclasses import dataclass
 
     from slam2d.filters.dead_reckoning import DeadReckoning, DeadReckoningConfig
@@ -439,6 +439,15 @@ def test_cli_turns_gps_off_for_evaluation_only_gps(tmp_path: Path, monkeypatch):
     assert main(base) == 0
     assert main([*base, "--set", "use_gps=true"]) == 0
     assert seen == [False, True]
+    # the rule lives in the registry, so Python callers get it too
+    from slam2d.io.datasets.victoria import load_victoria
+    from slam2d.lab.runner import run_named
+
+    log = load_victoria(tmp_path / "victoria-park")
+    run_named("gps-probe", log=log)
+    run_named("gps-probe", log=log, overrides={"use_gps": "true"})
+    assert seen == [False, True, False, True]
+    assert registry.make_config("ekf", None, log.metadata).use_gps is False
 
 
 def test_dataset_options_pass_through_and_are_validated(tmp_path: Path, capsys):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from typing import Any
 
 from slam2d.association import METHODS
@@ -11,7 +10,7 @@ from slam2d.cli.common import add_set_argument, overrides_from, print_table, wri
 from slam2d.config import parse_set_args
 from slam2d.eval.gps import gps_ate
 from slam2d.io.datasets import DATASETS, load_dataset
-from slam2d.lab.registry import estimator_names, get_spec
+from slam2d.lab.registry import estimator_names
 from slam2d.lab.runner import run_named
 from slam2d.log import Log
 from slam2d.sim.scenarios import SCENARIOS
@@ -76,11 +75,6 @@ def cmd(args: argparse.Namespace) -> int:
         overrides["estimator.association.method"] = args.association
     if args.no_loop_closure:
         overrides["estimator.loop_closure"] = "false"
-    if log is not None and log.metadata.get("gps_role") == "evaluation":
-        # GPS kept for scoring only: an estimator that can fuse GPS must not see it unless asked explicitly
-        fields = {f.name for f in dataclasses.fields(get_spec(args.estimator).config_cls)}
-        if "use_gps" in fields and not any(k.split(".")[-1] == "use_gps" for k in overrides):
-            overrides["estimator.use_gps"] = "false"
     result, record = run_named(args.estimator, args.scenario or "room", seed=args.seed,
                                overrides=overrides, log=log, progress=None)
     if args.dataset and log is not None:

@@ -79,7 +79,10 @@ def get_spec(name: str) -> EstimatorSpec:
 
 def make_config(name: str, overrides: Mapping[str, Any] | None = None,
                 log_metadata: Mapping[str, Any] | None = None) -> Any:
-    """The estimator's config: defaults, then the log's motion/sensor parameters, then ``overrides``."""
+    """The estimator's config: defaults, then the log's motion/sensor parameters, then ``overrides``.
+
+    A log whose ``metadata['gps_role']`` is ``"evaluation"`` turns ``use_gps`` off (overrides may turn it back on).
+    """
     spec = get_spec(name)
     cfg = spec.config_cls()
     meta = log_metadata or {}
@@ -93,6 +96,9 @@ def make_config(name: str, overrides: Mapping[str, Any] | None = None,
     for key in INHERITED_SCALARS:
         if key in fields and isinstance(recorded, Mapping) and recorded.get(key) is not None:
             data[key] = recorded[key]
+    if meta.get("gps_role") == "evaluation" and "use_gps" in fields:
+        # the log keeps GPS for scoring only (e.g. in its own frame): fuse it only when an override asks for it
+        data["use_gps"] = False
     cfg = from_dict(spec.config_cls, data)
     return with_overrides(cfg, overrides) if overrides else cfg
 

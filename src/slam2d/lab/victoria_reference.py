@@ -2,10 +2,10 @@
 
 The processed file is the same drive with the association solved by another tree detector; from its odometry chain,
 Gauss-Newton-type solvers stop in poor stationary points (chi2 503276 with LM, 250028 with dog leg; see the graph
-tests). Starting it instead from an estimate made on the raw log with unknown association tests that estimate
-twice: if the estimate is right, the solver falls into a far lower minimum, and the estimate's trajectory and map
-agree with that optimum. Poses are matched to raw steps by distance travelled
-(:func:`slam2d.io.datasets.victoria.processed_pose_steps`).
+tests). Started instead from an estimate made on the raw log with unknown association, LM reaches a far lower
+minimum (chi2 6183.93 from every estimator tried: the start only has to be in its wide basin), and the estimate
+can then be scored against that optimum: its trajectory pose by pose, its map landmark by landmark. Poses are
+matched to raw steps by distance travelled (:func:`slam2d.io.datasets.victoria.processed_pose_steps`).
 """
 
 from __future__ import annotations

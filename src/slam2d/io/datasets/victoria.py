@@ -27,8 +27,8 @@ method cannot run on this dataset.
 
 GPS fixes (own frame, metres) are attached to the nearest step when within half a scan period (one per step, the
 closest) in ``gps_step`` / ``gps_xy`` for evaluation (:func:`slam2d.eval.gps.gps_ate`); there is no ``true_poses``.
-``metadata['gps_role'] == 'evaluation'`` says estimators should not fuse them (``slam2d run`` turns an estimator's
-``use_gps`` off for such logs unless ``--set use_gps=true`` is given).
+``metadata['gps_role'] == 'evaluation'`` says estimators should not fuse them (the registry's ``make_config``, used
+by ``run_named``, the CLI and sweeps, turns ``use_gps`` off for such logs unless an override sets it).
 Noise parameters in the metadata are hand-set, not fitted (there is no full ground truth), except the detection
 probability 0.5: of the mapped trees predicted in view (< 28 m) along an EKF run, 56 % had a detection within 1.5 m
 in a scan. For scale (numbers measured with the info.txt model): trees
