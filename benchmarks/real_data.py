@@ -32,8 +32,7 @@ PLAN = [
     ("victoria-park", 1, "dead-reckoning", {}),
     *[("victoria-park", 1, e, {"association.method": m}) for e, m in [
         ("ekf", "mahalanobis"), ("ekf", "jcbb"), ("fastslam", "mahalanobis"), ("fastslam2", "mahalanobis")]],
-    ("plaza1", 1, "dead-reckoning", {}), ("plaza1", 1, "range-only-graph", {}),
-    ("plaza2", 1, "dead-reckoning", {}), ("plaza2", 1, "range-only-graph", {}),
+    *[(p, 1, e, {}) for p in ("plaza1", "plaza2") for e in ("dead-reckoning", "range-only-ekf", "range-only-graph")],
 ]
 
 

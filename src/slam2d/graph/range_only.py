@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from slam2d.filters.base import Estimate
 from slam2d.geometry import se2
+from slam2d.geometry.trilateration import trilaterate
 from slam2d.graph.graph import FactorGraph, Values
 from slam2d.graph.optimizer import OptimizerConfig, Summary, optimize
 from slam2d.log import Log, Step
@@ -66,17 +67,6 @@ def dead_reckon(initial_pose: Array, odometry: Array) -> Array:
     for t in range(len(odometry)):
         poses[t + 1] = se2.compose(poses[t], odometry[t])
     return poses
-
-
-def trilaterate(positions: Array, ranges: Array) -> Array:
-    """Least-squares point from ranges to known positions (K>=3 not collinear): subtract the first equation."""
-    p, r = np.asarray(positions, dtype=np.float64), np.asarray(ranges, dtype=np.float64)
-    if len(p) < 3:
-        raise ValueError(f"trilateration needs >= 3 ranges (got {len(p)})")
-    a = 2 * (p[1:] - p[0])
-    b = np.sum(p[1:] ** 2, axis=1) - np.sum(p[0] ** 2) - r[1:] ** 2 + r[0] ** 2
-    sol, *_ = np.linalg.lstsq(a, b, rcond=None)
-    return np.asarray(sol, dtype=np.float64)
 
 
 def range_only_slam(log: Log, config: RangeOnlyConfig | None = None) -> RangeOnlyResult:
