@@ -21,7 +21,7 @@ from slam2d.io.datasets._common import (
     robust_std,
     step_grid,
 )
-from slam2d.io.datasets.mrclam import load_mrclam
+from slam2d.io.datasets.mrclam import CAMERA_DELAY_S, ODOMETRY_DELAY_S, load_mrclam
 from slam2d.io.datasets.plaza import load_plaza
 from slam2d.io.datasets.victoria import CAR_A_M, CAR_B_M, CAR_H_M, CAR_L_M, STEERING_OFFSET_RAD, load_victoria
 from slam2d.lab.registry import make_config
@@ -164,8 +164,11 @@ def write_mrclam(folder: Path, robot: int = 1, duration: float = 12.0) -> None:
     t_cmd = t0 + 0.02 * np.arange(int(duration / 0.02))
     v = 0.1 + 0.05 * np.sin(0.3 * (t_cmd - t0))
     w = 0.4 * np.sin(0.5 * (t_cmd - t0))
+    # stamped like the real robots: a command is logged ODOMETRY_DELAY_S before the robot executes it, an image
+    # CAMERA_DELAY_S after it was taken (the loader takes both latencies out)
     (folder / f"Robot{robot}_Odometry.dat").write_text(
-        HEADER + "".join(f"{t:.3f} {a:.17g} {b:.17g}\n" for t, a, b in zip(t_cmd, v, w, strict=True)))
+        HEADER + "".join(f"{t - ODOMETRY_DELAY_S:.3f} {a:.17g} {b:.17g}\n"
+                         for t, a, b in zip(t_cmd, v, w, strict=True)))
     t_ref, ref = euler(t_cmd, v, w, t_cmd[-1] + 0.5)
     start = np.array([0.3, -0.2, 0.7])
     gt = se2.compose(start, ref)
@@ -176,9 +179,9 @@ def write_mrclam(folder: Path, robot: int = 1, duration: float = 12.0) -> None:
     for i in sel[5::25]:  # every 0.25 s, on GT sample times
         for s, (x, y) in LANDMARKS.items():
             z = range_bearing(gt[i], np.array([x, y]))
-            rows.append(f"{t_ref[i]:.4f} {BARCODES[s]} {z[0]:.17g} {z[1]:.17g}\n")
-        rows.append(f"{t_ref[i]:.4f} 14 1.5 0.1\n")  # robot 2
-        rows.append(f"{t_ref[i]:.4f} 99 2.5 -0.1\n")  # unknown barcode
+            rows.append(f"{t_ref[i] + CAMERA_DELAY_S:.4f} {BARCODES[s]} {z[0]:.17g} {z[1]:.17g}\n")
+        rows.append(f"{t_ref[i] + CAMERA_DELAY_S:.4f} 14 1.5 0.1\n")  # robot 2
+        rows.append(f"{t_ref[i] + CAMERA_DELAY_S:.4f} 99 2.5 -0.1\n")  # unknown barcode
     (folder / f"Robot{robot}_Measurement.dat").write_text(HEADER + "".join(rows))
 
 

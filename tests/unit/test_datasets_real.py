@@ -75,6 +75,22 @@ def test_mrclam7_counts_dead_reckoning_and_measurement_conventions(robot: int):
     assert 0.03 < log.metadata["sensor"]["detection_prob"] < 0.2
 
 
+#: SLAM without the barcode ids on MRCLAM 7: one configuration per estimator for all five robots
+MRCLAM7_UNKNOWN = {"ekf": {"association.method": "mahalanobis"},
+                   "fastslam": {"association.method": "mahalanobis", "particles": 300}}
+
+
+@pytest.mark.parametrize("robot", [1, 2, 3, 4, 5])
+def test_mrclam7_slam_without_ids_beats_dead_reckoning(robot: int):
+    from slam2d.lab.runner import run_named
+
+    log = load_mrclam(dataset_path("utias-mrclam-7"), robot)
+    dr = run_named("dead-reckoning", log=log, seed=0)[1]["ate_rmse_m"]
+    for name, overrides in MRCLAM7_UNKNOWN.items():
+        _, rec = run_named(name, log=log, seed=0, overrides=overrides)
+        assert rec["ate_rmse_m"] < 0.7 * dr, (name, rec["ate_rmse_m"], dr)
+
+
 def test_mrclam7_keep_others_marks_robots_dynamic():
     log = load_mrclam(dataset_path("utias-mrclam-7"), 3, others="keep", max_time_s=300)
     ids = log.obs_id

@@ -37,6 +37,7 @@ from scipy.linalg import blas
 
 from slam2d import _jacobians
 from slam2d.association import CLUTTER, NEW, AssociationConfig, AssociationResult, Candidates, associate
+from slam2d.association.gating import gate_thresholds, innovations, mahalanobis_matrix
 from slam2d.config import check_nonnegative, check_positive
 from slam2d.filters.base import Estimate
 from slam2d.geometry.angles import wrap_angle
@@ -653,7 +654,14 @@ class EKFSLAM:
             matched[j] = True
             if obs.descriptor is not None and self._desc is not None:
                 self._desc[j] += (obs.descriptor[o] - self._desc[j]) / self._hits[j]
-        self._misses = np.where(matched, 0, np.where(in_view, self._misses + 1, self._misses))
+        # a miss is negative information: nothing was seen where the landmark should be. An observation inside the
+        # landmark's wide gate that was left unmatched (ambiguous) is not a miss, only an unused sighting
+        seen = np.zeros(self._ids.shape[0], dtype=bool)
+        if k and js.size and self.config.association.method != "known":
+            near = mahalanobis_matrix(innovations(z, cands.z_pred), cands.S) <= gate_thresholds(
+                self.config.association)[1]
+            seen[js] = near.any(axis=0)
+        self._misses = np.where(matched, 0, np.where(in_view & ~seen, self._misses + 1, self._misses))
         # --- new landmarks (a repeated id in one scan is added once)
         new = np.flatnonzero(assign == NEW)
         if self.config.association.method == "known" and new.size:
