@@ -25,10 +25,12 @@ DOCS = Path(__file__).resolve().parents[1] / "docs"
 PLAN = [
     # (dataset, robot, estimator, overrides)
     *[("mrclam", r, e, o) for r in range(1, 6) for e, o in [
-        ("dead-reckoning", {}), ("ekf", {"association.method": "known"}), ("ekf", {"association.method": "jcbb"}),
-        ("fastslam2", {"association.method": "known"}), ("fastslam", {"association.method": "mahalanobis"}),
-        ("graph", {"association.method": "known",
-                                                                   "optimize_every": "50"})]],
+        ("dead-reckoning", {}), ("ekf", {"association.method": "known"}),
+        ("ekf", {"association.method": "mahalanobis"}), ("ekf", {"association.method": "jcbb"}),
+        ("fastslam2", {"association.method": "known"}),
+        ("fastslam", {"association.method": "mahalanobis", "particles": "300"}),
+        ("fastslam2", {"association.method": "mahalanobis"}),
+        ("graph", {"association.method": "known", "optimize_every": "50"})]],
     ("victoria-park", 1, "dead-reckoning", {}),
     *[("victoria-park", 1, e, {"association.method": m}) for e, m in [
         ("ekf", "mahalanobis"), ("ekf", "jcbb"), ("fastslam", "mahalanobis"), ("fastslam2", "mahalanobis")]],
@@ -54,7 +56,8 @@ def main() -> int:
         res, rec = slam2d.run_named(est, log=log, seed=0, overrides=over)
         cpu = time.process_time() - t0
         row = {"dataset": name if name != "mrclam" else f"mrclam-7 robot {robot}",
-               "estimator": est + (f" ({over['association.method']})" if "association.method" in over else ""),
+               "estimator": est + (f" ({over['association.method']})" if "association.method" in over else "")
+               + (f" M={over['particles']}" if "particles" in over else ""),
                "ate_m": rec.get("ate_rmse_m", float("nan")), "landmarks": rec["landmarks_estimated"],
                "cpu_s": cpu}
         if log.true_poses is None and log.gps_step is not None:
