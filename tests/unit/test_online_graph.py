@@ -71,3 +71,56 @@ def test_config_validation():
         GraphSLAMConfig(optimize_every=0)
     with pytest.raises(ValueError, match="loop_robust_kernel"):
         GraphSLAMConfig(loop_robust_kernel="tukey")
+
+
+def _dense_covariance(graph, values):
+    """The inverse of the whole Gauss-Newton information matrix at ``values`` (first pose held), and its analysis."""
+    from slam2d.graph.problem import Analysis
+
+    an = Analysis(graph, values)
+    _, _, data, _ = an.linearize(values.poses, values.points)
+    up = an.upper(data).toarray()
+    return np.linalg.inv(up + np.triu(up, 1).T), an
+
+
+def test_association_gates_with_the_joint_innovation_covariance(monkeypatch):
+    """The S (and S_joint) handed to the association is H Sigma H^T + R with Sigma the [newest pose, candidates] block
+    of the dense inverse information matrix, cross-covariances included -- one and several odometry steps after an
+    optimisation, with tentative landmarks counted as their first sighting's factor."""
+    import copy
+
+    import slam2d.association as association
+    from slam2d.association import candidates_from_belief
+
+    log = slam2d.simulate("loop", seed=0, steps=140, clutter_rate=2.0)  # clutter: tentative landmarks
+    est = GraphSLAM(make_config("graph", {"association.method": "mahalanobis", "optimize_every": 20}, log.metadata))
+    real = association.associate
+    checked = []
+
+    def check(obs, cands, cfg, *, rng):
+        t = int(est.values.pose_keys[-1])
+        if t > 60 and t % 20 in (1, 7):
+            # the graph as it stands, plus each tentative landmark with its (single) held sighting
+            graph, values = copy.deepcopy(est.graph), est.values.copy()
+            tent = np.isin(cands.ids, est.tent_keys)
+            assert np.all(np.isin(est.held_key, est.tent_keys)) and est.held_key.size == est.tent_keys.size
+            values.add_points(est.tent_keys, est.tent_pts)
+            info = np.linalg.inv(est.config.sensor.covariance)
+            graph.add_range_bearing(est.held_pose, est.held_key, est.held_z,
+                                    np.broadcast_to(info, (est.held_key.size, 2, 2)))
+            cov, an = _dense_covariance(graph, values)
+            cols, _ = an.variable_slices([t], cands.ids)
+            pts = np.array([values.point(int(k)) for k in cands.ids])
+            truth = candidates_from_belief(values.poses[-1], pts, cands.ids, cov[np.ix_(cols, cols)],
+                                           est.config.sensor.covariance)
+            if t % 20 == 1:  # right after an optimisation the block is exact
+                np.testing.assert_allclose(cands.S, truth.S, rtol=1e-6, atol=1e-9)
+                np.testing.assert_allclose(cands.S_joint, truth.S_joint, rtol=1e-6, atol=1e-9)
+            checked.append((t, int(tent.sum()), float(np.max(np.abs(cands.S - truth.S) / np.abs(truth.S).max()))))
+        return real(obs, cands, cfg, rng=rng)
+
+    monkeypatch.setattr(association, "associate", check)
+    slam2d.run(est, log, rng=spawn_streams(0)["estimator"])
+    assert len(checked) >= 6 and sum(c[1] for c in checked if c[0] % 20 == 1) >= 3
+    # six steps later the block has been through local (EKF) updates, linearised where the graph was not: close
+    assert max(c[2] for c in checked) < 0.1

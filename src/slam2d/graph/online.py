@@ -10,6 +10,13 @@ also carry a robust kernel so that a wrong one that slipped through is down-weig
 
 With ``loop_closure`` off the robot also forgets landmarks it has not seen for ``revisit_gap_steps``: a re-sighting
 after such a gap starts a new landmark, exactly as if the place were not recognised.
+
+Unknown association (every method but ``known``) gates each candidate with the innovation covariance of the JOINT
+belief over [newest pose, candidate landmarks], cross-covariances included (:class:`~slam2d.graph.local_belief.
+LocalBelief`: the joint marginal recovered at each optimisation, propagated through odometry in between). A new
+landmark is tentative until it has been associated ``confirm_after`` times: its sightings are held aside, and only
+then are its point and all its factors added to the graph; a tentative landmark missed too often while in view
+(``tentative_max_misses``) is discarded with its sightings, so clutter never enters the graph.
 """
 
 from __future__ import annotations
@@ -22,8 +29,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 import slam2d.association as association
-from slam2d.association import CLUTTER, NEW, AssociationConfig, Candidates
-from slam2d.config import check_positive
+from slam2d.association import CLUTTER, NEW, AssociationConfig, Candidates, candidates_from_belief
+from slam2d.config import check_nonnegative, check_positive
 from slam2d.filters.base import Estimate
 from slam2d.frontend.place_recognition import (
     KeyframeDatabase,
@@ -33,11 +40,14 @@ from slam2d.frontend.place_recognition import (
     verify_loop,
 )
 from slam2d.geometry import se2
+from slam2d.geometry.angles import angle_diff
+from slam2d.graph.factors import between_error_jacobians
 from slam2d.graph.graph import FactorGraph, Values
+from slam2d.graph.local_belief import LocalBelief
 from slam2d.graph.marginals import marginal_covariances
 from slam2d.graph.optimizer import Optimizer, OptimizerConfig
 from slam2d.log import Step
-from slam2d.models.motion import MotionNoise, odometry_covariance, odometry_predict_jacobians
+from slam2d.models.motion import MotionNoise, odometry_covariance
 from slam2d.models.sensors import (
     SensorConfig,
     range_bearing,
@@ -84,12 +94,30 @@ class GraphSLAMConfig:
     """multiply odometry information (> 1: overconfident odometry, the "2 m offset" puzzle)."""
     loop_info_scale: float = 1.0
     """multiply loop-closure information (< 1: a weak loop constraint)."""
+    confirm_after: int = 2
+    """unknown association: a new landmark is tentative (its sightings held aside, nothing in the graph) until it has
+    been associated this many times, counting its first sighting (1: every NEW observation is a landmark at once)."""
+    tentative_max_misses: int = 3
+    """a tentative landmark predicted well inside the sensor's view this many steps without a match is discarded with
+    its sightings (0: never). Divided by the sensor's ``detection_prob``, as in EKF-SLAM."""
+    view_margin_m: float = 0.5
+    """"well inside the view" means predicted range <= max_range_m - view_margin_m (and inside the field of view)."""
+    candidate_margin_m: float = 3.0
+    """landmarks predicted within max_range_m + this (m) of the newest pose are association candidates."""
+    belief_margin_m: float = 10.0
+    """the joint [pose, landmarks] block used for association holds the landmarks within max_range_m +
+    candidate_margin_m + this (m) of the newest pose at the last optimisation; when the robot has moved so far that a
+    candidate is outside it, the graph is optimised early (which refreshes the block)."""
 
     def __post_init__(self) -> None:
-        for n in ("optimize_every", "iterations", "final_iterations", "revisit_gap_steps", "keyframe_every"):
+        for n in ("optimize_every", "iterations", "final_iterations", "revisit_gap_steps", "keyframe_every",
+                  "confirm_after"):
             if getattr(self, n) < 1:
                 raise ValueError(f"GraphSLAMConfig.{n} must be >= 1 (got {getattr(self, n)})")
+        if self.tentative_max_misses < 0:
+            raise ValueError(f"GraphSLAMConfig.tentative_max_misses must be >= 0 (got {self.tentative_max_misses})")
         check_positive(self, "odometry_info_scale", "loop_info_scale")
+        check_nonnegative(self, "view_margin_m", "candidate_margin_m", "belief_margin_m")
         if not 0 < self.loop_gate_probability < 1:
             raise ValueError(f"GraphSLAMConfig.loop_gate_probability must be in (0, 1) (got "
                              f"{self.loop_gate_probability})")
@@ -123,11 +151,27 @@ class GraphSLAM:
         self.values = Values(np.array([0]), np.asarray(initial_pose, dtype=np.float64).reshape(1, 3))
         self.optimizer = Optimizer(self.graph, OptimizerConfig(method="lm", max_iterations=cfg.iterations))
         self.index = 0
-        self.pose_cov = np.zeros((3, 3))  # marginal of the newest pose: last optimisation + odometry since
-        self.point_cov: dict[int, Array] = {}
+        # joint covariance of [newest pose, nearby landmarks]: last optimisation + odometry since (pose only with
+        # known association, which needs no landmark covariance)
+        self.belief = LocalBelief()
+        self.point_covs = np.zeros((0, 2, 2))  # marginal of each point, aligned with values.point_keys
+        self.point_seen = np.zeros(0, dtype=np.int64)  # last step each point was observed (same alignment)
+        self._point_order = np.zeros(0, dtype=np.int64)
         self.last_seen: dict[int, int] = {}
         self.alias: dict[int, int] = {}  # source id -> landmark key (loop closure off: forgotten ids re-keyed)
         self.next_key = 0
+        # tentative landmarks (unknown association): key, first sighting (pose key, z), hits, consecutive misses
+        self.tent_keys = np.zeros(0, dtype=np.int64)
+        self.tent_src = np.zeros(0, dtype=np.int64)
+        self.tent_z = np.zeros((0, 2))
+        self.tent_pts = np.zeros((0, 2))  # their means: first sighting, then corrected by the local updates
+        self.tent_hits = np.zeros(0, dtype=np.int64)
+        self.tent_misses = np.zeros(0, dtype=np.int64)
+        # their sightings, held aside until they are confirmed: pose key, landmark key, z
+        self.held_pose = np.zeros(0, dtype=np.int64)
+        self.held_key = np.zeros(0, dtype=np.int64)
+        self.held_z = np.zeros((0, 2))
+        self.tentative_dropped = 0
         self.db = KeyframeDatabase(cfg.place)
         self.keyframes: dict[int, tuple[Array, Array]] = {}
         self.loops: list[LoopRecord] = []
@@ -135,6 +179,11 @@ class GraphSLAM:
         self.latency_s: list[float] = []
         self.optimizations = 0
         self._finalized = False
+
+    @property
+    def pose_cov(self) -> Array:
+        """Marginal covariance of the newest pose (3x3): last optimisation + odometry since."""
+        return self.belief.pose_cov
 
     def step(self, step: Step) -> None:
         t0 = time.perf_counter()
@@ -145,18 +194,24 @@ class GraphSLAM:
         prev = self.values.poses[-1]
         u = np.asarray(step.odometry, dtype=np.float64)
         pose = se2.compose(prev, u)
-        q = odometry_covariance(u, cfg.motion)
-        ja, jb = odometry_predict_jacobians(prev, u)
-        self.pose_cov = ja @ self.pose_cov @ ja.T + jb @ q @ jb.T
-        self.values.add_poses([t], [pose])
         # a noise model without a floor makes a standstill "certain"; 0.1 mm / 0.1 mrad keeps the information finite
-        info = np.linalg.inv(q + ODOMETRY_FLOOR_COV) * cfg.odometry_info_scale
+        q = odometry_covariance(u, cfg.motion) + ODOMETRY_FLOOR_COV
+        info = np.linalg.inv(q) * cfg.odometry_info_scale
+        # predict the belief with exactly what the new factor says: x_t = x_{t-1} (+) u with error e ~ N(0, info^-1)
+        # in the factor's own (g2o, end-of-motion) frame: dx_t = -Jj^-1 Ji dx_{t-1} + Jj^-1 e
+        ji, jj = between_error_jacobians(prev, pose, u)
+        jj_inv = np.linalg.inv(jj)
+        self.belief.predict(-jj_inv @ ji, jj_inv @ np.linalg.inv(info) @ jj_inv.T)
+        self.values.add_poses([t], [pose])
         self.graph.add_between([t - 1], [t], u[None], info[None])
 
         obs = step.observations
         loop_added = False
         if len(obs):
-            self._add_landmark_factors(t, pose, obs)
+            if cfg.association.method == "known":
+                self._add_landmark_factors(t, pose, obs)
+            else:
+                self._observe_unknown(t, obs)
             if t % cfg.keyframe_every == 0:
                 if cfg.loop_closure:
                     loop_added = self._detect_loop(t, obs.z)
@@ -164,6 +219,9 @@ class GraphSLAM:
                     self._remember_keyframe(t, obs.z)
         else:
             self.last_assignment = np.zeros(0, dtype=np.int64)
+            if cfg.association.method != "known" and self.tent_keys.size:
+                drop = self._count_tentative_misses(np.zeros(0, dtype=np.int64))
+                self._retire_tentatives(np.zeros_like(drop), drop)
         if loop_added or t % cfg.optimize_every == 0:
             self._optimize(cfg.iterations * (4 if loop_added else 1))
         self.latency_s.append(time.perf_counter() - t0)
@@ -175,13 +233,15 @@ class GraphSLAM:
             pose=self.values.poses[-1].copy(),
             pose_cov=self.pose_cov.copy(),
             landmarks=self.values.points[order].copy(),
-            landmark_covs=np.array([self.point_cov.get(int(k), np.eye(2)) for k in self.values.point_keys[order]]
-                                   ).reshape(-1, 2, 2),
+            landmark_covs=self.point_covs[order].copy(),
             landmark_ids=self.values.point_keys[order].copy(),
             extras={
                 "trajectory": self.values.poses.copy(),
                 "state_dim": int(3 * len(self.values.poses) + 2 * len(self.values.points)),
                 "assoc": self.last_assignment.copy(),
+                "tentative_landmarks": self._tentative_points(),
+                "tentative_ids": self.tent_keys.copy(),
+                "tentative_dropped": self.tentative_dropped,
                 "loops_accepted": sum(1 for lp in self.loops if lp.accepted),
                 "loops_rejected": sum(1 for lp in self.loops if not lp.accepted),
                 "loops": [(lp.a, lp.b, lp.accepted, lp.T_a_b) for lp in self.loops],
@@ -194,7 +254,7 @@ class GraphSLAM:
     def finalize(self) -> None:
         """Optimise to convergence (called by the runner after the last step)."""
         if not self._finalized:
-            self._optimize(self.config.final_iterations)
+            self._optimize(self.config.final_iterations, all_points=True)
             self._finalized = True
 
     def close_loop_now(self, z: Array) -> bool:
@@ -241,103 +301,282 @@ class GraphSLAM:
             an = None
         return marginal_covariances(self.graph, self.values, pose_keys, point_keys, analysis=an).joint
 
-    def _optimize(self, iterations: int) -> None:
+    def _optimize(self, iterations: int, *, all_points: bool = False) -> None:
         cfg = self.optimizer.config
         if cfg.max_iterations != iterations:
             self.optimizer.config = OptimizerConfig(method="lm", max_iterations=iterations)
         self.values, _ = self.optimizer.optimize(self.values)
         self.optimizations += 1
         # refresh the uncertainty used by association (landmarks only when it is not the oracle) and the loop gate
-        keys = self.values.point_keys if self.config.association.method != "known" else np.zeros(0, np.int64)
-        cov = self._marginals([int(self.values.pose_keys[-1])], keys)
-        self.pose_cov = cov[:3, :3]
-        for i, k in enumerate(keys):
-            self.point_cov[int(k)] = cov[3 + 2 * i: 5 + 2 * i, 3 + 2 * i: 5 + 2 * i]
+        if self.config.association.method == "known":
+            self.belief.set(np.zeros(0, np.int64), self._marginals([int(self.values.pose_keys[-1])]))
+        else:
+            self._refresh_belief(all_points)
+
+    def _refresh_belief(self, all_points: bool = False) -> None:
+        """The joint marginal of [newest pose, landmarks near it, tentative landmarks], from one factorisation.
+
+        A tentative landmark is not in the graph; it is l = g(x_s, z) of its first sighting z from pose x_s, so its
+        rows follow from those of x_s (``Sigma_l. = Gp Sigma_s.``, plus ``Gz R Gz^T`` on its own block).
+        """
+        cfg = self.config
+        t = int(self.values.pose_keys[-1])
+        pose = self.values.poses[-1]
+        if all_points:
+            near_keys = self.values.point_keys
+        else:
+            reach = cfg.sensor.max_range_m + cfg.candidate_margin_m + cfg.belief_margin_m
+            near_keys = self.values.point_keys[self._reachable(t, pose, reach)]
+        src = np.unique(self.tent_src[self.tent_src != t])
+        pose_keys = np.concatenate([[t], src]).astype(np.int64)
+        m = self._marginals(pose_keys, near_keys)
+        n_p, n_l, n_t = pose_keys.size, near_keys.size, self.tent_keys.size
+        base = np.r_[0:3, 3 * n_p: 3 * n_p + 2 * n_l]  # [x_t, l_near] in m
+        cov = np.empty((base.size + 2 * n_t,) * 2)
+        cov[:base.size, :base.size] = m[np.ix_(base, base)]
+        if n_t:
+            # l_tent = g(x_src, z): its rows are Gp times the rows of its source pose (+ Gz R Gz^T on its own block)
+            slot = np.searchsorted(pose_keys[1:], self.tent_src) + 1
+            slot[self.tent_src == t] = 0
+            src_poses = self.values.poses[self._pose_rows(self.tent_src)]
+            self.tent_pts = range_bearing_inverse(src_poses, self.tent_z)
+            gp, gz = range_bearing_inverse_jacobians(src_poses, self.tent_z)
+            src_rows = 3 * slot[:, None] + np.arange(3)  # (n_t, 3)
+            cross = np.einsum("iab,ibk->iak", gp, m[src_rows][:, :, base]).reshape(2 * n_t, base.size)
+            ss = m[src_rows[:, :, None, None], src_rows[None, None, :, :]]  # (n_t, 3, n_t, 3)
+            tt = np.einsum("iab,ibjc,jdc->iajd", gp, ss, gp)
+            tt[np.arange(n_t), :, np.arange(n_t), :] += gz @ cfg.sensor.covariance @ np.swapaxes(gz, 1, 2)
+            cov[base.size:, :base.size] = cross
+            cov[:base.size, base.size:] = cross.T
+            cov[base.size:, base.size:] = tt.reshape(2 * n_t, 2 * n_t)
+        self.belief.set(np.concatenate([near_keys, self.tent_keys]), cov)
+        if n_l:
+            self.point_covs[self._point_rows(near_keys)] = self.belief.point_covs(near_keys)
+
+    def _pose_rows(self, keys: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Rows of these pose keys in ``values`` (pose keys are added in increasing order)."""
+        return np.searchsorted(self.values.pose_keys, keys).astype(np.int64)
+
+    def _point_rows(self, keys: Any) -> NDArray[np.int64]:
+        """Rows of these point keys in ``values`` (all must exist)."""
+        pk = self.values.point_keys
+        if self._point_order.size != pk.size:
+            self._point_order = np.argsort(pk, kind="stable")
+        k = np.asarray(keys, dtype=np.int64).reshape(-1)
+        return self._point_order[np.searchsorted(pk[self._point_order], k)].astype(np.int64)
+
+    def _reachable(self, t: int, pose: Array, reach: float) -> NDArray[np.bool_]:
+        """Points within ``reach`` (m) of ``pose`` (and, with loop closure off, seen within revisit_gap_steps)."""
+        cfg = self.config
+        near = np.hypot(*(self.values.points - pose[:2]).T) <= reach
+        if not cfg.loop_closure:
+            near &= t - self.point_seen <= cfg.revisit_gap_steps
+        return near
+
+    def _add_points(self, keys: Any, points: Array, covs: Array, t: int) -> None:
+        self.values.add_points(keys, points)
+        self.point_covs = np.concatenate([self.point_covs, np.asarray(covs).reshape(-1, 2, 2)])
+        self.point_seen = np.concatenate([self.point_seen, np.full(len(keys), t, dtype=np.int64)])
+
+    def _mark_seen(self, keys: NDArray[np.int64], t: int) -> None:
+        if keys.size:
+            self.point_seen[self._point_rows(keys)] = t
+        for k in keys:
+            self.last_seen[int(k)] = t
 
     def _new_key(self) -> int:
-        while self.next_key in self.point_cov or np.any(self.values.point_keys == self.next_key):
+        while np.any(self.values.point_keys == self.next_key) or np.any(self.tent_keys == self.next_key):
             self.next_key += 1
         k = self.next_key
         self.next_key += 1
         return k
 
     def _add_landmark_factors(self, t: int, pose: Array, obs: Any) -> None:
+        """Known association: the source's ids (re-keyed after a long gap when loop closure is off)."""
         cfg = self.config
         R = cfg.sensor.covariance
         z = obs.z
         keys = np.asarray(self.values.point_keys, dtype=np.int64)
-        if cfg.association.method == "known":
-            assign = np.full(len(obs), CLUTTER, dtype=np.int64)
-            for i, sid in enumerate(obs.landmark_id):
-                sid = int(sid)
-                if sid < 0:
-                    continue
-                key: int | None = self.alias.get(sid, sid)
-                if key is not None and key in self.last_seen and not cfg.loop_closure \
-                        and t - self.last_seen[key] > cfg.revisit_gap_steps:
-                    key = None  # not recognised: it will start a new landmark
-                if key is None:
-                    key = self._new_key() + 1_000_000
-                    self.alias[sid] = key
-                else:
-                    self.alias.setdefault(sid, key)
-                assign[i] = key
-        else:
-            assign = self._associate(t, pose, obs, keys)
-        new_mask = assign == NEW
-        if np.any(new_mask):
-            assign[new_mask] = [self._new_key() for _ in range(int(new_mask.sum()))]
+        assign = np.full(len(obs), CLUTTER, dtype=np.int64)
+        for i, sid in enumerate(obs.landmark_id):
+            sid = int(sid)
+            if sid < 0:
+                continue
+            key: int | None = self.alias.get(sid, sid)
+            if key is not None and key in self.last_seen and not cfg.loop_closure \
+                    and t - self.last_seen[key] > cfg.revisit_gap_steps:
+                key = None  # not recognised: it will start a new landmark
+            if key is None:
+                key = self._new_key() + 1_000_000
+                self.alias[sid] = key
+            else:
+                self.alias.setdefault(sid, key)
+            assign[i] = key
         use = assign >= 0
         if not np.any(use):
             self.last_assignment = assign
             return
-        known_keys = set(int(k) for k in keys)
-        fresh = [i for i in np.flatnonzero(use) if int(assign[i]) not in known_keys]
-        # a new landmark is initialised from its first sighting (inverse sensor model)
-        seen: set[int] = set()
-        init_keys, init_pts = [], []
-        for j in fresh:
-            k = int(assign[j])
-            if k in seen:
-                continue
-            seen.add(k)
-            init_keys.append(k)
-            init_pts.append(range_bearing_inverse(pose, z[j]))
-            gp, gz = range_bearing_inverse_jacobians(pose, z[j])
-            self.point_cov[k] = gp @ self.pose_cov @ gp.T + gz @ R @ gz.T
-        if init_keys:
-            self.values.add_points(init_keys, np.array(init_pts))
         idx = np.flatnonzero(use)
+        # a new landmark is initialised from its first sighting (inverse sensor model)
+        fresh_keys, first = np.unique(assign[idx], return_index=True)
+        is_new = ~np.isin(fresh_keys, keys)
+        j = idx[first[is_new]]
+        order = np.argsort(j)
+        j, fresh_keys = j[order], fresh_keys[is_new][order]
+        if j.size:
+            gp, gz = range_bearing_inverse_jacobians(pose, z[j])
+            covs = gp @ self.pose_cov @ np.swapaxes(gp, 1, 2) + gz @ R @ np.swapaxes(gz, 1, 2)
+            self._add_points(fresh_keys, range_bearing_inverse(pose, z[j]), covs, t)
         info = np.broadcast_to(np.linalg.inv(R), (idx.size, 2, 2))
         self.graph.add_range_bearing(np.full(idx.size, t), assign[idx], z[idx], info)
-        for k in assign[idx]:
-            self.last_seen[int(k)] = t
+        self._mark_seen(assign[idx], t)
         self.last_assignment = assign
 
-    def _associate(self, t: int, pose: Array, obs: Any, keys: NDArray[np.int64]) -> NDArray[np.int64]:
-        """Unknown association: candidates in range, S from the marginals, the configured method."""
+    def _tentative_points(self) -> Array:
+        """Positions of the tentative landmarks, (T, 2)."""
+        return self.tent_pts.copy()
+
+    def association_candidates(self) -> Candidates:
+        """The candidates the next observations at the newest pose are associated against: confirmed landmarks (and
+        tentative ones) predicted within max_range_m + candidate_margin_m, with S and S_joint from the joint belief.
+
+        Optimises first (refreshing the belief) when a candidate lies outside the belief's block.
+        """
+        return self._candidates()[0]
+
+    def _candidates(self) -> tuple[Candidates, Array]:
+        """:meth:`association_candidates` and the candidates' positions (C, 2)."""
+        cfg = self.config
+        reach = cfg.sensor.max_range_m + cfg.candidate_margin_m
+        for attempt in range(2):
+            t = int(self.values.pose_keys[-1])
+            pose = self.values.poses[-1]
+            near = self._reachable(t, pose, reach)
+            near_t = np.hypot(*(self.tent_pts - pose[:2]).T) <= reach
+            keys = np.concatenate([self.values.point_keys[near], self.tent_keys[near_t]])
+            pts = np.concatenate([self.values.points[near], self.tent_pts[near_t]])
+            if attempt == 0 and np.any(self.belief.rows(keys) < 0):
+                self._optimize(cfg.iterations)  # moved beyond the block since the last optimisation
+                continue
+            break
+        return candidates_from_belief(pose, pts, keys, self.belief.select(keys), cfg.sensor.covariance), pts
+
+    def _count_tentative_misses(self, matched: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Update the tentative landmarks' miss counts (predicted well in view, not matched); returns which are
+        to be discarded."""
+        cfg = self.config
+        if self.tent_keys.size == 0:
+            return np.zeros(0, dtype=bool)
+        zp = range_bearing(self.values.poses[-1], self.tent_pts)
+        half_fov = 0.5 * cfg.sensor.fov_rad
+        in_view = (zp[:, 0] <= cfg.sensor.max_range_m - cfg.view_margin_m) & \
+            (np.abs(zp[:, 1]) <= half_fov - cfg.view_margin_m / np.maximum(zp[:, 0], 1e-9))
+        hit = np.isin(self.tent_keys, matched)
+        self.tent_misses = np.where(hit, 0, np.where(in_view, self.tent_misses + 1, self.tent_misses))
+        if not cfg.tentative_max_misses:
+            return np.zeros(self.tent_keys.size, dtype=bool)
+        return self.tent_misses >= np.ceil(cfg.tentative_max_misses * cfg.sensor.misses_per_sighting)
+
+    def _retire_tentatives(self, promote: NDArray[np.bool_], drop: NDArray[np.bool_]) -> None:
+        """Forget the tentative landmarks that were confirmed (already in the graph) or discarded (also removed from
+        the belief), with their held sightings."""
+        if np.any(drop):
+            self.belief.remove(self.tent_keys[drop])
+            self.tentative_dropped += int(drop.sum())
+        gone = promote | drop
+        if not np.any(gone):
+            return
+        h = np.isin(self.held_key, self.tent_keys[gone])
+        self.held_pose, self.held_key, self.held_z = self.held_pose[~h], self.held_key[~h], self.held_z[~h]
+        keep = ~gone
+        self.tent_keys, self.tent_src, self.tent_z = self.tent_keys[keep], self.tent_src[keep], self.tent_z[keep]
+        self.tent_pts = self.tent_pts[keep]
+        self.tent_hits, self.tent_misses = self.tent_hits[keep], self.tent_misses[keep]
+
+    def _observe_unknown(self, t: int, obs: Any) -> None:
+        """Unknown association against the joint belief; tentative landmarks are held aside until confirmed.
+
+        Order (as in EKF-SLAM): associate; update the belief with the matches whose factors enter the graph now
+        (confirmed landmarks, and tentative ones confirmed by this sighting) and move the newest pose and the
+        block's landmarks by the correction; then start the NEW observations as tentative landmarks from the
+        corrected pose; confirm and discard tentative landmarks; add the factors.
+        """
         cfg = self.config
         R = cfg.sensor.covariance
-        pts = self.values.points
-        if keys.size:
-            near = np.hypot(*(pts - pose[:2]).T) <= cfg.sensor.max_range_m + 3.0
-            if not cfg.loop_closure:
-                recent = np.array([t - self.last_seen.get(int(k), -10**9) <= cfg.revisit_gap_steps for k in keys])
-                near &= recent
-            cand_keys, cand_pts = keys[near], pts[near]
-        else:
-            cand_keys, cand_pts = keys, pts
-        if cand_keys.size == 0:
-            return np.where(np.ones(len(obs), dtype=bool), NEW, NEW).astype(np.int64)
-        zp = range_bearing(pose, cand_pts)
-        hp, hl = range_bearing_jacobians(pose, cand_pts)
-        lcov = np.array([self.point_cov.get(int(k), np.eye(2)) for k in cand_keys])
-        s_blocks = hp @ self.pose_cov @ np.swapaxes(hp, 1, 2) + hl @ lcov @ np.swapaxes(hl, 1, 2) + R
-        hp_stack = hp.reshape(-1, 3)
-        s_joint = hp_stack @ self.pose_cov @ hp_stack.T
-        for i in range(len(cand_keys)):
-            s_joint[2 * i:2 * i + 2, 2 * i:2 * i + 2] = s_blocks[i]
-        cands = Candidates(cand_keys.astype(np.int64), zp, s_blocks, s_joint)
+        z = np.asarray(obs.z, dtype=np.float64)
+        cands, cand_pts = self._candidates()
+        assign = self._associate(obs, cands)
+        is_tent = np.isin(assign, self.tent_keys) & (assign >= 0)
+        conf = (assign >= 0) & ~is_tent
+        hits = np.isin(self.tent_keys, assign[is_tent])
+        self.tent_hits = self.tent_hits + hits
+        promote = self.tent_hits >= cfg.confirm_after
+        upd = conf | np.isin(assign, self.tent_keys[promote])
+        if np.any(upd):
+            self._local_update(assign[upd], z[upd], cands, cand_pts)
+        pose = self.values.poses[-1]
+        new = np.flatnonzero(assign == NEW)
+        if new.size:
+            new_keys = np.array([self._new_key() for _ in range(new.size)], dtype=np.int64)
+            assign[new] = new_keys
+            gp, gz = range_bearing_inverse_jacobians(pose, z[new])
+            self.belief.augment(new_keys, gp, gz, R)
+            self.tent_keys = np.concatenate([self.tent_keys, new_keys])
+            self.tent_src = np.concatenate([self.tent_src, np.full(new.size, t, dtype=np.int64)])
+            self.tent_z = np.concatenate([self.tent_z, z[new]])
+            self.tent_pts = np.concatenate([self.tent_pts, range_bearing_inverse(pose, z[new])])
+            self.tent_hits = np.concatenate([self.tent_hits, np.ones(new.size, dtype=np.int64)])
+            self.tent_misses = np.concatenate([self.tent_misses, np.zeros(new.size, dtype=np.int64)])
+            promote = np.concatenate([promote, np.full(new.size, cfg.confirm_after <= 1)])
+            is_tent[new] = True
+        # sightings of tentative landmarks are held aside until they are confirmed
+        hold = np.flatnonzero(is_tent)
+        self.held_pose = np.concatenate([self.held_pose, np.full(hold.size, t, dtype=np.int64)])
+        self.held_key = np.concatenate([self.held_key, assign[hold]])
+        self.held_z = np.concatenate([self.held_z, z[hold]])
+        drop = self._count_tentative_misses(assign[hold]) & ~promote
+        # confirmed: the point and every held sighting join the graph
+        f_pose, f_key, f_z = [np.full(int(conf.sum()), t, dtype=np.int64)], [assign[conf]], [z[conf]]
+        if np.any(promote):
+            pk = self.tent_keys[promote]
+            self._add_points(pk, self.tent_pts[promote], self.belief.point_covs(pk), t)
+            h = np.isin(self.held_key, pk)
+            f_pose.append(self.held_pose[h])
+            f_key.append(self.held_key[h])
+            f_z.append(self.held_z[h])
+        self._retire_tentatives(promote, drop)
+        fp, fk, fz = np.concatenate(f_pose), np.concatenate(f_key), np.concatenate(f_z)
+        if fk.size:
+            info = np.broadcast_to(np.linalg.inv(R), (fk.size, 2, 2))
+            self.graph.add_range_bearing(fp, fk, fz, info)
+            self._mark_seen(np.unique(fk), t)
+        self.last_assignment = assign
+
+    def _local_update(self, keys: NDArray[np.int64], z: Array, cands: Candidates, cand_pts: Array) -> None:
+        """EKF update of the belief with these matches, and the same correction applied to the newest pose and to
+        the block's landmarks (graph values and tentative means); see :mod:`slam2d.graph.local_belief`."""
+        pose = self.values.poses[-1]
+        order = np.argsort(cands.ids)
+        ci = order[np.searchsorted(cands.ids, keys, sorter=order)]
+        zp = cands.z_pred[ci]
+        nu = np.column_stack([z[:, 0] - zp[:, 0], angle_diff(z[:, 1], zp[:, 1])])
+        hp, hl = range_bearing_jacobians(np.broadcast_to(pose, (keys.size, 3)), cand_pts[ci])
+        dx = self.belief.update(keys, hp, hl, nu, self.config.sensor.covariance)
+        self.values.poses[-1] = se2.retract(pose, dx[:3])
+        d = dx[3:].reshape(-1, 2)
+        bk = self.belief.keys
+        in_graph = np.isin(bk, self.values.point_keys)
+        if np.any(in_graph):
+            self.values.points[self._point_rows(bk[in_graph])] += d[in_graph]
+        if np.any(~in_graph):
+            tr = np.searchsorted(self.tent_keys, bk[~in_graph], sorter=np.argsort(self.tent_keys))
+            self.tent_pts[np.argsort(self.tent_keys)[tr]] += d[~in_graph]
+
+    def _associate(self, obs: Any, cands: Candidates) -> NDArray[np.int64]:
+        """Run the configured association method (every observation is NEW when there is no candidate)."""
+        cfg = self.config
+        if cands.ids.size == 0:
+            return np.full(len(obs), NEW, dtype=np.int64)
         assoc_fn = getattr(association, "associate", None)
         if assoc_fn is None:
             raise ValueError("not yet implemented: association method "
