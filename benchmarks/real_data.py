@@ -30,10 +30,12 @@ PLAN = [
         ("fastslam2", {"association.method": "known"}),
         ("fastslam", {"association.method": "mahalanobis", "particles": "300"}),
         ("fastslam2", {"association.method": "mahalanobis"}),
-        ("graph", {"association.method": "known", "optimize_every": "50"})]],
+        ("graph", {"association.method": "known", "optimize_every": "50"}),
+        ("graph", {"association.method": "mahalanobis", "optimize_every": "50"})]],
     ("victoria-park", 1, "dead-reckoning", {}),
     *[("victoria-park", 1, e, {"association.method": m}) for e, m in [
-        ("ekf", "mahalanobis"), ("ekf", "jcbb"), ("fastslam", "mahalanobis"), ("fastslam2", "mahalanobis")]],
+        ("ekf", "mahalanobis"), ("ekf", "jcbb"), ("fastslam", "mahalanobis"), ("fastslam2", "mahalanobis"),
+        ("graph", "mahalanobis")]],
     *[(p, 1, e, {}) for p in ("plaza1", "plaza2") for e in ("dead-reckoning", "range-only-ekf", "range-only-graph")],
 ]
 
