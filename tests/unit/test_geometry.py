@@ -18,6 +18,7 @@ from slam2d.geometry import (
     log,
     mahalanobis_sq,
     retract,
+    se2,
     transform_points,
     wrap_angle,
 )
@@ -166,3 +167,16 @@ def test_covariance_ellipse():
     r = np.array([[np.cos(0.5), -np.sin(0.5)], [np.sin(0.5), np.cos(0.5)]])
     e2 = covariance_ellipse(r @ np.diag([4.0, 1.0]) @ r.T)
     assert e2.angle == pytest.approx(0.5)
+
+
+def test_compose_chain_equals_sequential_composition():
+    rng = np.random.default_rng(7)
+    start = np.array([1.0, -2.0, 3.0])
+    u = np.column_stack([rng.normal(0.5, 0.3, 200), rng.normal(0, 0.1, 200), rng.normal(0, 0.3, 200)])
+    seq = [start]
+    for ui in u:
+        seq.append(se2.compose(seq[-1], ui))
+    got = se2.compose_chain(start, u)
+    assert got.shape == (201, 3)
+    np.testing.assert_allclose(got[:, :2], np.array(seq)[:, :2], atol=1e-9)
+    np.testing.assert_allclose(angle_diff(got[:, 2], np.array(seq)[:, 2]), 0.0, atol=1e-9)

@@ -10,6 +10,7 @@ from slam2d.geometry.gaussian import mahalanobis_sq as mahalanobis_sq
 from slam2d.geometry.se2 import between as between
 from slam2d.geometry.se2 import between_jacobians as between_jacobians
 from slam2d.geometry.se2 import compose as compose
+from slam2d.geometry.se2 import compose_chain as compose_chain
 from slam2d.geometry.se2 import compose_jacobians as compose_jacobians
 from slam2d.geometry.se2 import exp as exp
 from slam2d.geometry.se2 import exp_jacobians as exp_jacobians

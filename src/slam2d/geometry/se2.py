@@ -42,6 +42,19 @@ def compose(a: ArrayLike, b: ArrayLike) -> Array:
     return np.stack([x, y, wrap_angle(a[..., 2] + b[..., 2])], axis=-1)
 
 
+def compose_chain(start: ArrayLike, increments: ArrayLike) -> Array:
+    """Poses ``start (+) u_1 (+) ... (+) u_k`` for k = 0..T (dead reckoning), vectorised: headings are a cumulative
+    sum, positions a cumulative sum of the increments rotated by the heading before each. Shapes: (3,),(T,3) ->
+    (T+1,3)."""
+    u = _f(increments).reshape(-1, 3)
+    p0 = _f(start).reshape(3)
+    heading = p0[2] + np.concatenate([[0.0], np.cumsum(u[:, 2])])
+    c, s = np.cos(heading[:-1]), np.sin(heading[:-1])
+    step_xy = np.stack([c * u[:, 0] - s * u[:, 1], s * u[:, 0] + c * u[:, 1]], axis=-1)
+    xy = p0[:2] + np.vstack([np.zeros((1, 2)), np.cumsum(step_xy, axis=0)])
+    return np.column_stack([xy, wrap_angle(heading)])
+
+
 def compose_jacobians(a: ArrayLike, b: ArrayLike) -> tuple[Array, Array]:
     """``(J_ab_a, J_ab_b)``, each (..., 3, 3)."""
     a, b = _f(a), _f(b)

@@ -60,15 +60,6 @@ class RangeOnlyResult:
     """None when no beacon could be placed (the trajectory is then the dead-reckoned one)."""
 
 
-def dead_reckon(initial_pose: Array, odometry: Array) -> Array:
-    """Compose the odometry (T,3) from the initial pose: (T+1,3)."""
-    poses = np.empty((len(odometry) + 1, 3))
-    poses[0] = initial_pose
-    for t in range(len(odometry)):
-        poses[t + 1] = se2.compose(poses[t], odometry[t])
-    return poses
-
-
 def range_only_slam(log: Log, config: RangeOnlyConfig | None = None) -> RangeOnlyResult:
     """Batch range-only SLAM over a whole log whose observations are ranges to identified beacons."""
     return solve_range_only(log.initial_pose, log.odometry, log.obs_step, log.obs_id, log.obs_range_m,
@@ -78,7 +69,7 @@ def range_only_slam(log: Log, config: RangeOnlyConfig | None = None) -> RangeOnl
 def solve_range_only(initial_pose: Array, odometry: Array, obs_step: NDArray[np.int64], obs_id: NDArray[np.int64],
                      obs_range: Array, cfg: RangeOnlyConfig) -> RangeOnlyResult:
     """The batch problem from arrays. Shapes: (3,), (T,3), (K,), (K,), (K,)."""
-    dr = dead_reckon(initial_pose, odometry)
+    dr = se2.compose_chain(initial_pose, odometry)
     known = obs_id >= 0
     # a beacon ranged fewer than 3 times cannot be placed: its ranges are left out
     counts = dict(zip(*np.unique(obs_id[known], return_counts=True), strict=True))

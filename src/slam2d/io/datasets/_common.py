@@ -257,7 +257,7 @@ def fit_motion_noise(odometry: ArrayLike, true_poses: ArrayLike, steps_per_windo
     if n < 1 or u.shape[0] < 4 * n:
         raise ValueError(f"need at least 4 windows of {n} steps to fit motion noise (have {u.shape[0]} steps)")
     # compose the odometry into one dead-reckoned chain (sequential by nature; T is at most ~1e5)
-    dr = _compose_chain(u)
+    dr = se2.compose_chain(np.zeros(3), u)
     ends = np.arange(0, u.shape[0] + 1, n)
     w_odo = se2.between(dr[ends[:-1]], dr[ends[1:]])
     w_gt = se2.between(gt[ends[:-1]], gt[ends[1:]])
@@ -294,15 +294,6 @@ def fit_motion_noise(odometry: ArrayLike, true_poses: ArrayLike, steps_per_windo
         "min_trans_std_m": max(MIN_FLOOR, float(np.sqrt(ct[2] / n))),
         "min_rot_std_rad": max(MIN_FLOOR, float(np.sqrt(cr[2] / n))),
     }
-
-
-def _compose_chain(u: Array) -> Array:
-    """Poses from composing increments from the origin. Shapes: (T,3) -> (T+1,3). Exact (heading cumsum)."""
-    heading = np.concatenate([[0.0], np.cumsum(u[:, 2])])
-    c, s = np.cos(heading[:-1]), np.sin(heading[:-1])
-    step_xy = np.stack([c * u[:, 0] - s * u[:, 1], s * u[:, 0] + c * u[:, 1]], axis=-1)
-    xy = np.vstack([np.zeros((1, 2)), np.cumsum(step_xy, axis=0)])
-    return np.column_stack([xy, wrap_angle(heading)])
 
 
 def robust_std(residuals: ArrayLike) -> dict[str, float]:

@@ -50,7 +50,6 @@ from numpy.typing import ArrayLike, NDArray
 from slam2d.geometry import se2
 from slam2d.io.datasets._common import (
     DatasetFormatError,
-    _compose_chain,
     cap_log,
     check_integer,
     check_nondecreasing,
@@ -66,15 +65,13 @@ IntArray = NDArray[np.int64]
 
 #: vehicle geometry (metres): b, H, L from the dataset's info.txt / car.bmp. The laser's forward offset ``a`` is the
 #: 3.78 m of Guivant & Nebot's published model (laser at the front bumper), not info.txt's 0.95 m: re-observed trees
-#: agree better with 3.78 m (see CALIBRATION below).
+#: agree better with 3.78 m (module docstring, "Calibration").
 CAR_A_M = 3.78
 CAR_B_M = 0.5
 CAR_H_M = 0.76
 CAR_L_M = 2.83
-#: steering-encoder offset (rad) added to every steering reading. Self-calibrated from the data itself, never from
-#: GPS: the offset that makes the same trees, seen 1 s / 5 s / 20 s apart and placed through dead reckoning, land
-#: closest together (median nearest-neighbour gap 0.155 / 0.53 / 0.82 m with no offset, 0.100 / 0.207 / 0.316 m
-#: with 0.006 rad). Uncorrected, the offset is a constant turn of ~0.1 deg/m that bends the whole path.
+#: steering-encoder offset (rad) added to every steering reading, calibrated from the data alone (module docstring,
+#: "Calibration"). Uncorrected, it is a constant turn of ~0.1 deg/m that bends the whole path.
 STEERING_OFFSET_RAD = 0.006
 
 #: hand-set noise (not fitted: no full ground truth). Per step (one laser scan, ~0.2 s, up to ~1 m of travel).
@@ -225,7 +222,7 @@ def reobservation_gaps_m(log: Log, lags: tuple[int, ...] = (5, 25, 100), *, ever
     """
     from scipy.spatial import cKDTree
 
-    poses = se2.compose(log.initial_pose, _compose_chain(log.odometry))
+    poses = se2.compose_chain(log.initial_pose, log.odometry)
     p = poses[log.obs_step]
     world = p[:, :2] + log.obs_range_m[:, None] * np.column_stack([np.cos(p[:, 2] + log.obs_bearing_rad),
                                                                    np.sin(p[:, 2] + log.obs_bearing_rad)])
@@ -253,7 +250,7 @@ def processed_pose_steps(path: str | Path, processed_poses: ArrayLike) -> IntArr
     """
     proc = np.asarray(processed_poses, dtype=np.float64).reshape(-1, 3)
     raw = load_victoria(path, laser_forward_m=0.0, steering_offset_rad=0.0)  # log pose = rear axle + (0, b)
-    rear = se2.compose(_compose_chain(raw.odometry), se2.inverse(np.array([0.0, CAR_B_M, 0.0])))
+    rear = se2.compose(se2.compose_chain(np.zeros(3), raw.odometry), se2.inverse(np.array([0.0, CAR_B_M, 0.0])))
     s_raw = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(rear[:, :2], axis=0).T))])
     s_proc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(proc[:, :2], axis=0).T))])
     j = np.searchsorted(s_raw, s_proc).clip(1, s_raw.size - 1)
