@@ -234,4 +234,4 @@ def test_victoria_online_graph_with_unknown_association_beats_dead_reckoning():
     dr = gps_ate(chain(log.odometry, log.initial_pose), log).rmse_m
     got = gps_ate(res.trajectory, log).rmse_m
     assert got < 2.5 and got < 0.2 * dr, (got, dr)
-    assert res.final.extras["loops_accepted"] >= 1 and rec["landmarks_estimated"] < 250
+    assert res.final.diagnostics.loops_accepted >= 1 and rec["landmarks_estimated"] < 250

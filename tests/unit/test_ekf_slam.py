@@ -11,7 +11,7 @@ from scipy.optimize import linear_sum_assignment
 
 from slam2d import _jacobians
 from slam2d.association import CLUTTER, NEW, AssociationConfig, Candidates
-from slam2d.filters.base import Estimator
+from slam2d.estimator import Estimator
 from slam2d.filters.ekf_slam import (
     EKFSLAM,
     CovarianceError,
@@ -379,7 +379,7 @@ def test_class_agrees_with_the_pure_kernels():
     np.testing.assert_allclose(mu_c, mu, atol=1e-12, rtol=0)
     np.testing.assert_allclose(P_c, P, atol=1e-12, rtol=0)
     snap = est.estimate()
-    assert snap.extras["state_dim"] == 3 + 2 * len(ids)
+    assert snap.state_dim == 3 + 2 * len(ids)
     np.testing.assert_allclose(snap.landmark_covs[0], P[3:5, 3:5], atol=0)
 
 
@@ -396,9 +396,11 @@ def test_registered_and_filled_from_log_metadata():
     snap = res.final
     n_l = len(snap.landmarks)
     assert n_l > 0 and snap.landmark_covs is not None and snap.landmark_covs.shape == (n_l, 2, 2)
-    assert snap.extras["cov"].shape == (snap.extras["state_dim"],) * 2
-    assert snap.extras["assoc"].shape == (len(log.observations_at(5)),)
-    assert "cov" not in make_estimator("ekf", None, log.metadata).estimate().extras
+    assert snap.full_cov.shape == (snap.state_dim,) * 2
+    assert snap.association.shape == (len(log.observations_at(5)),)
+    est0 = make_estimator("ekf", None, log.metadata)
+    est0.reset(log.initial_pose, rng=np.random.default_rng(0))
+    assert est0.estimate().full_cov is None
 
 
 def test_ekf_beats_dead_reckoning_on_room():
@@ -446,13 +448,13 @@ def test_clutter_landmarks_are_removed_and_state_shrinks_consistently():
         assert mu.shape == (3 + 2 * len(ids),) and P.shape == (mu.size, mu.size)
         assert np.array_equal(P, P.T)
         snap = est.estimate()
-        assert snap.extras["state_dim"] == mu.size
-        assert len(snap.landmarks) + len(snap.extras["tentative_ids"]) == len(ids)
-        if snap.extras["landmarks_removed"] and not removed_seen:
+        assert snap.state_dim == mu.size
+        assert len(snap.landmarks) + len(snap.tentative_ids) == len(ids)
+        if snap.diagnostics.landmarks_removed and not removed_seen:
             removed_seen = True
     assert removed_seen
-    assert est.estimate().extras["landmarks_removed"] >= 5
-    assert est.estimate().extras["covariance_repairs"] == 0
+    assert est.estimate().diagnostics.landmarks_removed >= 5
+    assert est.estimate().diagnostics.covariance_repairs == 0
     # most surviving confirmed landmarks are real
     snap = est.estimate()
     d = np.hypot(*(snap.landmarks[:, None, :] - log.true_landmarks[None]).transpose(2, 0, 1)).min(axis=1)
@@ -490,8 +492,8 @@ def test_bad_observations_dropped_and_counted_in_drop_mode():
     mu, P, ids = est.state
     assert ids.tolist() == [0, 3]
     assert np.all(np.isfinite(mu)) and np.all(np.isfinite(P))
-    assert est.estimate().extras["dropped_observations"] == 2
-    assert est.estimate().extras["assoc"].tolist() == [NEW, CLUTTER, CLUTTER, NEW]
+    assert est.estimate().diagnostics.dropped_observations == 2
+    assert est.estimate().association.tolist() == [NEW, CLUTTER, CLUTTER, NEW]
 
 
 def test_follows_the_estimator_protocol():
@@ -562,7 +564,7 @@ def test_estimator_covariance_guard(guard):
     for s in steps[10:]:
         est.step(s)
     mu, P, _ = est.state
-    assert est.estimate().extras["covariance_repairs"] == 1
+    assert est.estimate().diagnostics.covariance_repairs == 1
     assert np.array_equal(P, P.T) and np.linalg.eigvalsh(P)[0] > 0 and np.all(np.isfinite(mu))
 
 
@@ -625,7 +627,7 @@ def test_post_update_check_flags_a_negative_variance_and_the_estimator_repairs_i
     est.step(Step(index=1, time_s=0.2, dt_s=0.2, odometry=np.zeros(3),
                   observations=Observations(np.array([1.5]), np.array([0.0]), np.array([0]))))
     mu2, P2, _ = est.state
-    assert est.estimate().extras["covariance_repairs"] == 1
+    assert est.estimate().diagnostics.covariance_repairs == 1
     assert np.array_equal(P2, P2.T) and np.linalg.eigvalsh(P2)[0] > 0
 
 

@@ -255,8 +255,8 @@ def test_resampling_inside_the_filter_gives_independent_copies():
     for s in steps[:20]:
         est.step(s)
     snap = est.estimate()
-    assert snap.extras["resampled"]
-    np.testing.assert_allclose(snap.extras["weights"], np.full(30, 1 / 30))
+    assert snap.particles.resampled
+    np.testing.assert_allclose(snap.particles.weights, np.full(30, 1 / 30))
     p = est.particles
     # duplicates exist after resampling (same pose, same map) ...
     _, first, counts = np.unique(p.poses, axis=0, return_index=True, return_counts=True)
@@ -378,12 +378,12 @@ def test_importance_weights_are_the_textbook_likelihoods(version, rng):
 def test_all_zero_weights_recover_to_uniform_and_are_counted():
     est = _filled_filter(m=10, method="known")
     lm_id = int(est._slot_ids[0])
-    before = est.estimate().extras["weight_resets"]
+    before = est.estimate().diagnostics.weight_resets
     # an absurd outlier: its squared Mahalanobis distance overflows to inf for every particle
     est.step(_step(41, [0.0, 0.0, 0.0], [[1e200, 0.0]], [lm_id]))
     snap = est.estimate()
-    assert snap.extras["weight_resets"] == before + 1
-    np.testing.assert_allclose(snap.extras["weights"], np.full(10, 0.1))
+    assert snap.diagnostics.weight_resets == before + 1
+    np.testing.assert_allclose(snap.particles.weights, np.full(10, 0.1))
     assert np.all(np.isfinite(snap.pose))
 
 
@@ -443,17 +443,18 @@ def test_snapshot_contents():
     est = make_estimator("fastslam", {"particles": 15, "association.method": "known"}, log.metadata)
     res = slam2d.run(est, log, rng=np.random.default_rng(0))
     snap = res.final
-    ex = snap.extras
-    assert ex["particles"].shape == (15, 3) and ex["weights"].shape == (15,)
-    assert ex["weights"].sum() == pytest.approx(1.0)
-    assert 1.0 <= ex["n_eff"] <= 15.0 and isinstance(ex["resampled"], bool)
-    assert ex["state_dim"] == 3 + 2 * len(snap.landmarks)
+    ex = snap.particles
+    assert ex is not None
+    assert ex.poses.shape == (15, 3) and ex.weights.shape == (15,)
+    assert ex.weights.sum() == pytest.approx(1.0)
+    assert 1.0 <= ex.n_eff <= 15.0 and isinstance(ex.resampled, bool)
+    assert snap.state_dim == 3 + 2 * len(snap.landmarks)
     assert set(snap.landmark_ids) <= set(log.obs_id[log.obs_step <= 30])
     assert len(snap.landmark_ids) == len(np.unique(log.obs_id[(log.obs_step <= 30) & (log.obs_id >= 0)]))
     assert snap.landmark_covs is not None and np.all(np.linalg.eigvalsh(snap.landmark_covs) > 0)
     assert snap.pose_cov is not None and np.all(np.linalg.eigvalsh(snap.pose_cov) >= -1e-15)
-    mean, cov = weighted_pose_stats(ex["particles"], ex["weights"])
-    if not ex["resampled"]:  # the snapshot pose is the pre-resampling weighted mean
+    mean, cov = weighted_pose_stats(ex.poses, ex.weights)
+    if not ex.resampled:  # the snapshot pose is the pre-resampling weighted mean
         np.testing.assert_allclose(snap.pose, mean, atol=1e-12)
         np.testing.assert_allclose(snap.pose_cov, cov, atol=1e-15)
 

@@ -64,7 +64,7 @@ def test_beacon_is_placed_after_enough_spread_ranges_and_outliers_are_gated():
     before = est.estimate()
     est.step(_steps([(7, 50.0)]))  # 45 m off: a multipath outlier
     after = est.estimate()
-    assert after.extras["range_outliers"] == 1
+    assert after.diagnostics.range_outliers == 1
     np.testing.assert_allclose(after.landmarks, before.landmarks)
     np.testing.assert_allclose(after.pose, before.pose)
 

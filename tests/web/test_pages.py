@@ -152,7 +152,7 @@ def test_ekf_state_dimension_counts_landmarks(page: Any, lab_server: str, artifa
     c, sections = page.evaluate("[window.slamLab.counters, window.slamLab.sections]")
     # the state holds confirmed and tentative landmarks, 2 numbers each, after the 3 pose numbers
     tentative = c["landmarks_tentative"]
-    assert tentative == tentative, "ekf reports its tentative landmarks (extras['tentative_landmarks'])"
+    assert tentative == tentative, "ekf reports its tentative landmarks (Estimate.tentative_landmarks)"
     assert c["state_dim"] == 3 + 2 * (c["landmarks_mapped"] + tentative)
     assert sections["ECOV"][0] == sections["ELMK"][0] == c["landmarks_mapped"]
     n = min(int(c["state_dim"]), 96)  # the heat map is block-averaged beyond 96 x 96

@@ -8,8 +8,8 @@ import itertools
 import numpy as np
 import pytest
 
+from slam2d.estimator import Estimate, GraphView
 from slam2d.eval.trajectory import ate
-from slam2d.filters.base import Estimate
 from slam2d.lab.registry import estimator_names
 from slam2d.models.sensors import range_bearing_inverse, range_bearing_inverse_jacobians
 from slam2d.web.app import MAX_COMMAND_BYTES, parse_command
@@ -96,7 +96,7 @@ def test_keys_drive_the_simulator_and_numbers_come_from_the_library() -> None:
     s.apply({"type": "key", "key": "ArrowUp", "down": False})
     nums = s.numbers()
     assert nums["ate_rmse_m"] == pytest.approx(ate(np.asarray(s.est_path), np.asarray(s.true_path)).rmse_m)
-    assert nums["state_dim"] == s.snap.extras["state_dim"]
+    assert nums["state_dim"] == s.snap.state_dim
     assert nums["step"] == 8
 
 
@@ -338,13 +338,13 @@ def test_maps_page_topology_layer_has_places_and_connections() -> None:
 def test_graph_view_edges_join_the_right_variables() -> None:
     from slam2d.web.sessions import _graph_view_sections
 
-    view = {"poses": np.array([[0.0, 0, 0], [1, 0, 0], [2, 1, 0]]), "pose_keys": np.array([10, 5, 7]),
-            "points": np.array([[4.0, 4.0]]), "point_keys": np.array([3]),
-            "edges": {"between": np.array([[10, 5], [5, 7]]), "range_bearing": np.array([[7, 3]]),
-                      "prior": np.array([[10]])}}
+    view = GraphView(poses=np.array([[0.0, 0, 0], [1, 0, 0], [2, 1, 0]]), pose_keys=np.array([10, 5, 7]),
+                     points=np.array([[4.0, 4.0]]), point_keys=np.array([3]),
+                     edges={"between": np.array([[10, 5], [5, 7]]), "range_bearing": np.array([[7, 3]]),
+                            "prior": np.array([[10]])})
     sec = dict(_graph_view_sections(view))
     np.testing.assert_array_equal(sec["GEDG"], [[0, 0, 1, 0], [1, 0, 2, 1], [2, 1, 4, 4]])
-    view["edges"] = {"between": np.array([[10, 99]])}
+    view = dataclasses.replace(view, edges={"between": np.array([[10, 99]])})
     with pytest.raises(KeyError):
         _graph_view_sections(view)
 

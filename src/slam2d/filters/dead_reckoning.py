@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from slam2d.filters.base import Estimate
+from slam2d.estimator import Estimate, EstimatorLifecycle
 from slam2d.log import Step
 from slam2d.models.motion import MotionNoise, odometry_covariance, odometry_predict, odometry_predict_jacobians
 
@@ -33,7 +33,7 @@ def dead_reckoning_step(pose: Array, cov: Array, u: Array, noise: MotionNoise) -
     return odometry_predict(pose, u), 0.5 * (new_cov + new_cov.T)
 
 
-class DeadReckoning:
+class DeadReckoning(EstimatorLifecycle):
     """Odometry integration with covariance propagation (implements the estimator protocol)."""
 
     def __init__(self, config: DeadReckoningConfig | None = None) -> None:
@@ -44,9 +44,15 @@ class DeadReckoning:
     def reset(self, initial_pose: Array, *, rng: np.random.Generator) -> None:
         self._pose = np.asarray(initial_pose, dtype=np.float64).copy()
         self._cov = np.zeros((3, 3))
+        self._lifecycle_reset()
 
     def step(self, step: Step) -> None:
+        self._check_step()
         self._pose, self._cov = dead_reckoning_step(self._pose, self._cov, step.odometry, self.config.motion)
 
     def estimate(self) -> Estimate:
-        return Estimate(pose=self._pose.copy(), pose_cov=self._cov.copy(), extras={"state_dim": 3})
+        self._check_ready()
+        return Estimate(pose=self._pose.copy(), pose_cov=self._cov.copy())
+
+    def finalize(self) -> None:
+        self._lifecycle_finalize()

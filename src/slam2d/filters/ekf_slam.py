@@ -39,7 +39,7 @@ from slam2d import _jacobians
 from slam2d.association import CLUTTER, NEW, AssociationConfig, AssociationResult, Candidates, associate
 from slam2d.association.gating import gate_thresholds, innovations, mahalanobis_matrix
 from slam2d.config import check_nonnegative, check_positive
-from slam2d.filters.base import Estimate
+from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle
 from slam2d.geometry.angles import wrap_angle
 from slam2d.log import Observations, Step
 from slam2d.models.motion import MotionNoise
@@ -481,7 +481,7 @@ class EKFConfig:
     covariance_guard: Literal["raise", "repair"] = "repair"
     """when the covariance guard fires (see module docstring): re-raise, or repair P and retry once (counted)."""
     snapshot_full_cov: bool = False
-    """put the full covariance P (a copy, O(N^2)) in the snapshot's extras under ``cov``."""
+    """put the full covariance P (a copy, O(N^2)) in the snapshot as ``full_cov``."""
 
     def __post_init__(self) -> None:
         from slam2d.config import _coerce
@@ -497,7 +497,7 @@ class EKFConfig:
                 raise ValueError(f"EKFConfig.{name} must be an integer >= {low} (got {v!r})")
 
 
-class EKFSLAM:
+class EKFSLAM(EstimatorLifecycle):
     """EKF-SLAM estimator (implements the estimator protocol); the math lives in the module's pure kernels.
 
     Per step: predict; GPS fix (if any); associate the observations against the landmarks near the robot;
@@ -534,8 +534,10 @@ class EKFSLAM:
             raise ValueError(f"initial_pose must be 3 finite numbers, got {initial_pose!r}")
         self._reset_state(pose)
         self._rng = rng
+        self._lifecycle_reset()
 
     def step(self, step: Step) -> None:
+        self._check_step()
         u = np.asarray(step.odometry, dtype=np.float64)
         if u.shape != (3,) or not np.all(np.isfinite(u)):
             raise ValueError(f"step {step.index}: odometry must be 3 finite numbers, got {step.odometry!r}")
@@ -553,25 +555,23 @@ class EKFSLAM:
             self._last_assoc = full
 
     def estimate(self) -> Estimate:
+        self._check_ready()
         n_l = self._ids.shape[0]
         lm = self._mu[POSE_DIM:].reshape(n_l, 2)
         idx = (POSE_DIM + 2 * np.arange(n_l)[:, None] + np.arange(2)).reshape(n_l, 2)
         covs = self._P[idx[:, :, None], idx[:, None, :]] if n_l else np.zeros((0, 2, 2))
         conf = self._hits >= self.config.confirm_after
-        extras: dict[str, Any] = {
-            "state_dim": int(self._mu.shape[0]),
-            "assoc": self._last_assoc.copy(),
-            "tentative_landmarks": lm[~conf].copy(),
-            "tentative_ids": self._ids[~conf].copy(),
-            "dropped_observations": self._dropped,
-            "covariance_repairs": self._repairs,
-            "landmarks_removed": self._removed,
-        }
-        if self.config.snapshot_full_cov:
-            extras["cov"] = self._P.copy()
         return Estimate(pose=self._mu[:POSE_DIM].copy(), pose_cov=self._P[:POSE_DIM, :POSE_DIM].copy(),
                         landmarks=lm[conf].copy(), landmark_covs=np.ascontiguousarray(covs[conf]),
-                        landmark_ids=self._ids[conf].copy(), extras=extras)
+                        landmark_ids=self._ids[conf].copy(), state_dim=int(self._mu.shape[0]),
+                        association=self._last_assoc.copy(), tentative_landmarks=lm[~conf].copy(),
+                        tentative_ids=self._ids[~conf].copy(),
+                        full_cov=self._P.copy() if self.config.snapshot_full_cov else None,
+                        diagnostics=Diagnostics(dropped_observations=self._dropped, covariance_repairs=self._repairs,
+                                                landmarks_removed=self._removed))
+
+    def finalize(self) -> None:
+        self._lifecycle_finalize()
 
     @property
     def state(self) -> tuple[Array, Array, IntArray]:

@@ -43,16 +43,16 @@ copies all maps: O(M N).
 Weights are kept as logs, normalised by log-sum-exp; low-variance (systematic) resampling runs when
 ``N_eff = 1 / sum(w^2)`` falls below ``resample_threshold * particles``; it copies every per-particle array by
 fancy indexing, so no two particles ever share memory. When every weight is zero (all log-weights -inf or NaN,
-e.g. after an absurd outlier), the filter resets to uniform weights and counts it in ``extras["weight_resets"]``.
+e.g. after an absurd outlier), the filter resets to uniform weights and counts it in ``diagnostics.weight_resets``.
 
 Snapshot: ``pose`` is the weighted mean of the particle poses (circular mean for the heading) computed before
 resampling; ``pose_cov`` the weighted sample covariance around it; the map (landmarks, covariances, ids) is the one
 of the particle with the highest weight before resampling (followed through resampling to one of its copies).
 Landmark ids are the source's ids for known association, the particle's slot numbers otherwise.
-``extras``: ``particles`` (M,3) and ``weights`` (M,) after this step, ``n_eff`` (before resampling),
-``resampled`` (bool), ``weight_resets`` (int, cumulative), ``state_dim`` (3 + 2 x landmarks of the shown particle,
-the size of one particle's state, comparable to EKF-SLAM's), ``assoc`` (per observation: the shown particle's
-landmark id (a new landmark's id included), or -1 for an ignored observation).
+``particles``: poses (M,3) and weights (M,) after this step, ``n_eff`` (before resampling) and ``resampled``;
+``diagnostics.weight_resets`` (cumulative); ``state_dim`` (3 + 2 x landmarks of the shown particle, the size of one
+particle's state, comparable to EKF-SLAM's); ``association`` (per observation: the shown particle's landmark id (a new
+landmark's id included), or -1 for an ignored observation).
 
 References: M. Montemerlo, S. Thrun, D. Koller, B. Wegbreit, "FastSLAM 2.0: An improved particle filtering
 algorithm for simultaneous localization and mapping that provably converges", IJCAI 2003; S. Thrun, W. Burgard,
@@ -70,7 +70,7 @@ from numpy.typing import NDArray
 
 from slam2d.association.base import AssociationConfig
 from slam2d.config import check_positive, check_probability
-from slam2d.filters.base import Estimate
+from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, ParticleView
 from slam2d.geometry import se2
 from slam2d.geometry.angles import angle_diff, wrap_angle
 from slam2d.log import Step
@@ -449,7 +449,7 @@ def weighted_pose_stats(poses: Array, weights: Array) -> tuple[Array, Array]:
 # the estimator
 
 
-class FastSLAM:
+class FastSLAM(EstimatorLifecycle):
     """FastSLAM 1.0 / 2.0 over range-bearing landmarks (implements the estimator protocol)."""
 
     def __init__(self, config: FastSLAMConfig | None = None) -> None:
@@ -494,6 +494,7 @@ class FastSLAM:
         self._resampled = False
         self._weight_resets = 0
         self._assoc = np.zeros(0, dtype=np.int64)
+        self._lifecycle_reset()
 
     # -- association ---------------------------------------------------------------------------------------------
 
@@ -603,6 +604,7 @@ class FastSLAM:
     # -- one step ------------------------------------------------------------------------------------------------
 
     def step(self, step: Step) -> None:
+        self._check_step()
         p = self.particles
         cfg = self.config
         u = np.asarray(step.odometry, dtype=np.float64)
@@ -734,7 +736,11 @@ class FastSLAM:
 
     # -- snapshot ------------------------------------------------------------------------------------------------
 
+    def finalize(self) -> None:
+        self._lifecycle_finalize()
+
     def estimate(self) -> Estimate:
+        self._check_ready()
         p = self.particles
         b = self._best
         slots = np.flatnonzero(p.lm_evidence[b] > 0)
@@ -749,14 +755,8 @@ class FastSLAM:
             landmarks=p.lm_mean[b, slots].copy(),
             landmark_covs=p.lm_cov[b, slots].copy(),
             landmark_ids=ids,
-            extras={
-                "particles": p.poses.copy(),
-                "weights": w,
-                "n_eff": self._n_eff,
-                "resampled": self._resampled,
-                "weight_resets": self._weight_resets,
-                "state_dim": 3 + 2 * int(slots.size),
-                "assoc": self._assoc.copy(),
-                "version": self.config.version,
-            },
+            state_dim=3 + 2 * int(slots.size),
+            association=self._assoc.copy(),
+            particles=ParticleView(p.poses.copy(), w, float(self._n_eff), bool(self._resampled)),
+            diagnostics=Diagnostics(weight_resets=self._weight_resets),
         )

@@ -20,14 +20,13 @@ through an EKF is not undone. ``range_bias_m`` is subtracted first (0 by default
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from slam2d.config import check_nonnegative, check_positive, check_probability
-from slam2d.filters.base import Estimate
+from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle
 from slam2d.filters.ekf_slam import POSE_DIM, augment_linearized, ekf_predict, ekf_update
 from slam2d.geometry.trilateration import refine_point, trilaterate
 from slam2d.log import Step
@@ -65,14 +64,13 @@ class RangeOnlyEKFConfig:
         check_positive(self.sensor, "range_std_m")
 
 
-class RangeOnlyEKF:
+class RangeOnlyEKF(EstimatorLifecycle):
     """Range-only EKF-SLAM estimator (estimator protocol). State as in EKF-SLAM: ``[x, y, theta, b0x, b0y, ...]``."""
 
     def __init__(self, config: RangeOnlyEKFConfig | None = None) -> None:
         self.config = config or RangeOnlyEKFConfig()
         self._R = np.array([[self.config.sensor.range_std_m**2]])
         self._gate = float(chi2.ppf(self.config.gate_probability, 1))
-        self.reset(np.zeros(3), rng=np.random.default_rng(0))
 
     def reset(self, initial_pose: Array, *, rng: np.random.Generator) -> None:
         pose = np.asarray(initial_pose, dtype=np.float64)
@@ -86,8 +84,10 @@ class RangeOnlyEKF:
         self._pending: dict[int, list[tuple[float, float, float, float]]] = {}
         self._outliers = 0
         self._updates = 0
+        self._lifecycle_reset()
 
     def step(self, step: Step) -> None:
+        self._check_step()
         u = np.asarray(step.odometry, dtype=np.float64)
         if u.shape != (3,) or not np.all(np.isfinite(u)):
             raise ValueError(f"step {step.index}: odometry must be 3 finite numbers, got {step.odometry!r}")
@@ -103,15 +103,18 @@ class RangeOnlyEKF:
                 self._buffer(int(b), z)
 
     def estimate(self) -> Estimate:
+        self._check_ready()
         n = len(self._ids)
         lm = self._mu[POSE_DIM:].reshape(n, 2)
         idx = POSE_DIM + 2 * np.arange(n)[:, None] + np.arange(2)
         covs = self._P[idx[:, :, None], idx[:, None, :]] if n else np.zeros((0, 2, 2))
-        extras: dict[str, Any] = {"state_dim": int(self._mu.shape[0]), "range_outliers": self._outliers,
-                                  "range_updates": self._updates, "beacons_pending": len(self._pending)}
         return Estimate(pose=self._mu[:POSE_DIM].copy(), pose_cov=self._P[:POSE_DIM, :POSE_DIM].copy(),
                         landmarks=lm.copy(), landmark_covs=np.ascontiguousarray(covs),
-                        landmark_ids=np.array(self._ids, dtype=np.int64), extras=extras)
+                        landmark_ids=np.array(self._ids, dtype=np.int64), state_dim=int(self._mu.shape[0]),
+                        diagnostics=Diagnostics(range_outliers=self._outliers))
+
+    def finalize(self) -> None:
+        self._lifecycle_finalize()
 
     # ------------------------------------------------------------------ internals
     def _update(self, j: int, z: float) -> None:

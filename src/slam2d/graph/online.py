@@ -21,7 +21,6 @@ then are its point and all its factors added to the graph; a tentative landmark 
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,7 +30,7 @@ from numpy.typing import NDArray
 import slam2d.association as association
 from slam2d.association import CLUTTER, NEW, AssociationConfig, Candidates, candidates_from_belief
 from slam2d.config import check_nonnegative, check_positive
-from slam2d.filters.base import Estimate
+from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, GraphView, LoopEvent
 from slam2d.frontend.place_recognition import (
     KeyframeDatabase,
     PlaceRecognitionConfig,
@@ -126,18 +125,7 @@ class GraphSLAMConfig:
                              f"(got {self.loop_robust_kernel!r})")
 
 
-@dataclass(frozen=True)
-class LoopRecord:
-    """A verified loop candidate between pose keys a < b, and whether the gate accepted it."""
-
-    a: int
-    b: int
-    T_a_b: Array
-    d2: float
-    accepted: bool
-
-
-class GraphSLAM:
+class GraphSLAM(EstimatorLifecycle):
     """Online graph SLAM estimator (implements the estimator protocol)."""
 
     def __init__(self, config: GraphSLAMConfig | None = None) -> None:
@@ -174,11 +162,12 @@ class GraphSLAM:
         self.tentative_dropped = 0
         self.db = KeyframeDatabase(cfg.place)
         self.keyframes: dict[int, tuple[Array, Array]] = {}
-        self.loops: list[LoopRecord] = []
+        self.new_loops: list[LoopEvent] = []  # decisions of the current step (history is the runner's)
+        self.loops_accepted = 0
+        self.loops_rejected = 0
         self.last_assignment = np.zeros(0, dtype=np.int64)
-        self.latency_s: list[float] = []
         self.optimizations = 0
-        self._finalized = False
+        self._lifecycle_reset()
 
     @property
     def pose_cov(self) -> Array:
@@ -186,11 +175,11 @@ class GraphSLAM:
         return self.belief.pose_cov
 
     def step(self, step: Step) -> None:
-        t0 = time.perf_counter()
+        self._check_step()
         cfg = self.config
         t = step.index
         self.index = t
-        self._finalized = False
+        self.new_loops = []
         prev = self.values.poses[-1]
         u = np.asarray(step.odometry, dtype=np.float64)
         pose = se2.compose(prev, u)
@@ -224,10 +213,9 @@ class GraphSLAM:
                 self._retire_tentatives(np.zeros_like(drop), drop)
         if loop_added or t % cfg.optimize_every == 0:
             self._optimize(cfg.iterations * (4 if loop_added else 1))
-        self.latency_s.append(time.perf_counter() - t0)
 
     def estimate(self) -> Estimate:
-        cfg = self.config
+        self._check_ready()
         order = np.argsort(self.values.point_keys)
         return Estimate(
             pose=self.values.poses[-1].copy(),
@@ -235,31 +223,25 @@ class GraphSLAM:
             landmarks=self.values.points[order].copy(),
             landmark_covs=self.point_covs[order].copy(),
             landmark_ids=self.values.point_keys[order].copy(),
-            extras={
-                "trajectory": self.values.poses.copy(),
-                "state_dim": int(3 * len(self.values.poses) + 2 * len(self.values.points)),
-                "assoc": self.last_assignment.copy(),
-                "tentative_landmarks": self._tentative_points(),
-                "tentative_ids": self.tent_keys.copy(),
-                "tentative_dropped": self.tentative_dropped,
-                "loops_accepted": sum(1 for lp in self.loops if lp.accepted),
-                "loops_rejected": sum(1 for lp in self.loops if not lp.accepted),
-                "loops": [(lp.a, lp.b, lp.accepted, lp.T_a_b) for lp in self.loops],
-                "optimizations": self.optimizations,
-                "latency_s": self.latency_s[-1] if self.latency_s else 0.0,
-                "loop_closure": cfg.loop_closure,
-            },
+            state_dim=int(3 * len(self.values.poses) + 2 * len(self.values.points)),
+            trajectory=self.values.poses.copy(),
+            association=self.last_assignment.copy(),
+            tentative_landmarks=self._tentative_points(),
+            tentative_ids=self.tent_keys.copy(),
+            new_loops=tuple(self.new_loops),
+            diagnostics=Diagnostics(tentative_dropped=self.tentative_dropped, optimizations=self.optimizations,
+                                    loops_accepted=self.loops_accepted, loops_rejected=self.loops_rejected),
         )
 
     def finalize(self) -> None:
         """Optimise to convergence (called by the runner after the last step)."""
-        if not self._finalized:
+        if self._lifecycle_finalize():
             self._optimize(self.config.final_iterations, all_points=True)
-            self._finalized = True
 
     def close_loop_now(self, z: Array) -> bool:
         """Try to close a loop from observations ``z`` (K,2) taken at the newest pose, whatever ``loop_closure``
         says, and optimise to convergence if one is accepted (the lab's "close loop" button)."""
+        self.new_loops = []
         added = self._detect_loop(self.index, np.asarray(z, dtype=np.float64).reshape(-1, 2), add_keyframe=False)
         if added:
             self._optimize(self.config.final_iterations)
@@ -285,13 +267,12 @@ class GraphSLAM:
                     out[name] = float(chi[mask].sum()) / (int(mask.sum()) * b.z.shape[1])
         return out
 
-    def graph_view(self) -> dict[str, Any]:
-        """Nodes and edges for drawing: pose/point positions and edges (i, j, type) as index arrays."""
-        edges = {}
-        for b in self.graph.blocks():
-            edges[b.kind] = b.keys.T.copy()
-        return {"poses": self.values.poses.copy(), "pose_keys": self.values.pose_keys.copy(),
-                "points": self.values.points.copy(), "point_keys": self.values.point_keys.copy(), "edges": edges}
+    def graph_view(self) -> GraphView:
+        """Nodes and edges for drawing: pose/point positions and per factor kind the key pairs of its edges."""
+        self._check_ready()
+        edges = {b.kind: b.keys.T.copy() for b in self.graph.blocks()}
+        return GraphView(self.values.poses.copy(), self.values.pose_keys.copy(), self.values.points.copy(),
+                         self.values.point_keys.copy(), edges)
 
     # ------------------------------------------------------------------ internals
     def _marginals(self, pose_keys: Any = (), point_keys: Any = ()) -> Array:
@@ -606,8 +587,10 @@ class GraphSLAM:
             ja, jb = se2.between_jacobians(pose_a, self.values.poses[-1])
             j = np.hstack([ja, jb])
             ok, d2 = loop_gate(hyp.T_a_b, hyp.cov, t_pred, j @ joint @ j.T, cfg.loop_gate_probability)
-            self.loops.append(LoopRecord(a, t, hyp.T_a_b, d2, ok))
+            self.new_loops.append(LoopEvent(a, t, ok, hyp.T_a_b))
+            self.loops_rejected += not ok
             if ok:
+                self.loops_accepted += 1
                 info = np.linalg.inv(hyp.cov) * cfg.loop_info_scale
                 kernel = None if cfg.loop_robust_kernel == "none" else cfg.loop_robust_kernel
                 self.graph.add_between([a], [t], hyp.T_a_b[None], info[None], robust=kernel)

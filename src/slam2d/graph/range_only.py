@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from slam2d.filters.base import Estimate
+from slam2d.estimator import Estimate, EstimatorLifecycle
 from slam2d.geometry import se2
 from slam2d.geometry.trilateration import trilaterate
 from slam2d.graph.graph import FactorGraph, Values
@@ -111,7 +111,7 @@ class RangeOnlyGraphConfig:
         RangeOnlyConfig(range_std_m=self.sensor.range_std_m, robust_kernel=self.robust_kernel)  # same rules
 
 
-class RangeOnlyGraph:
+class RangeOnlyGraph(EstimatorLifecycle):
     """Estimator-protocol shell: records odometry and ranges, solves the batch problem in ``finalize``."""
 
     def __init__(self, config: RangeOnlyGraphConfig | None = None) -> None:
@@ -123,8 +123,10 @@ class RangeOnlyGraph:
         self._odo: list[Array] = []
         self._obs: list[tuple[int, NDArray[np.int64], Array]] = []
         self._result: RangeOnlyResult | None = None
+        self._lifecycle_reset()
 
     def step(self, step: Step) -> None:
+        self._check_step()
         self._pose = se2.compose(self._pose, step.odometry)
         self._odo.append(np.asarray(step.odometry, dtype=np.float64))
         if len(step.observations):
@@ -132,6 +134,8 @@ class RangeOnlyGraph:
         self._result = None
 
     def finalize(self) -> None:
+        if not self._lifecycle_finalize():
+            return
         c = self.config
         steps = np.concatenate([np.full(len(i), s) for s, i, _ in self._obs]).astype(np.int64) if self._obs else \
             np.zeros(0, np.int64)
@@ -142,9 +146,9 @@ class RangeOnlyGraph:
         self._result = solve_range_only(self._start, np.array(self._odo).reshape(-1, 3), steps, ids, rng_, cfg)
 
     def estimate(self) -> Estimate:
+        self._check_ready()
         r = self._result
         if r is None:
-            return Estimate(pose=self._pose.copy(), extras={"state_dim": 3})
+            return Estimate(pose=self._pose.copy())
         return Estimate(pose=r.trajectory[-1].copy(), landmarks=r.beacons.copy(), landmark_ids=r.beacon_ids.copy(),
-                        extras={"trajectory": r.trajectory.copy(), "state_dim": int(r.trajectory.size + r.beacons.size),
-                                "iterations": r.summary.iterations if r.summary is not None else 0})
+                        trajectory=r.trajectory.copy(), state_dim=int(r.trajectory.size + r.beacons.size))

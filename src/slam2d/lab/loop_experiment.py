@@ -39,7 +39,7 @@ def loop_closure_experiment(seed: int = 0) -> dict[str, Any]:
     res_off = run(est, log, rng=rng)
     before = res_off.trajectory.copy()
     closed = est.close_loop_now(log.observations_at(log.num_steps).z)
-    after = est.estimate().extras["trajectory"]
+    after = est.estimate().trajectory
     truth = log.true_poses
     res_on = run(_graph(log, {}), log, rng=spawn_streams(seed)["estimator"])
     travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(truth[:, :2], axis=0).T))])
@@ -70,8 +70,8 @@ def offset_puzzle(seed: int = 0) -> list[dict[str, Any]]:
         est = _graph(log, {"loop_closure": "false", **over})
         run(est, log, rng=spawn_streams(seed)["estimator"])
         est.close_loop_now(log.observations_at(log.num_steps).z)
-        traj = est.estimate().extras["trajectory"]
-        loops = [lp for lp in est.loops if lp.accepted]
+        traj = est.estimate().trajectory
+        loops = [lp for lp in est.estimate().new_loops if lp.accepted]
         gap = float("nan")
         if loops:
             lp = loops[-1]

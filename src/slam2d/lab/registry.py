@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from slam2d.config import from_dict, to_dict, with_overrides
-from slam2d.filters.base import Estimator
+from slam2d.estimator import Estimator
 from slam2d.filters.dead_reckoning import DeadReckoning, DeadReckoningConfig
 
 

@@ -12,9 +12,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam2d.config import split_overrides, to_dict, with_overrides
+from slam2d.estimator import Estimate, Estimator, LoopEvent, SupportsLoopClosure
 from slam2d.eval.association import run_association_scores
 from slam2d.eval.trajectory import ate, rpe
-from slam2d.filters.base import Estimate, Estimator
 from slam2d.geometry import se2
 from slam2d.lab.registry import get_spec, make_config
 from slam2d.log import Log
@@ -32,7 +32,8 @@ LOOP_TRUE_ERROR_M = 1.0
 
 @dataclass(frozen=True)
 class RunResult:
-    """What one run produced. Shapes: poses (T+1,3) online estimates; trajectory (T+1,3) final (smoothed) one."""
+    """What one run produced. Shapes: poses (T+1,3) online estimates; trajectory (T+1,3) final (smoothed) one;
+    ``loops`` every loop-closure decision the estimator reported, in order (``closes_loops``: it can close loops)."""
 
     poses: Array
     trajectory: Array
@@ -41,6 +42,8 @@ class RunResult:
     final: Estimate
     snapshots: list[Estimate] | None
     metrics: dict[str, Any] = field(default_factory=dict)
+    loops: tuple[LoopEvent, ...] = ()
+    closes_loops: bool = False
 
 
 def _progress(total: int, enabled: bool) -> Callable[[int], None]:
@@ -87,6 +90,7 @@ def run(
     snap = first
     assigned: list[NDArray[np.int64]] = []
     truth_ids: list[NDArray[np.int64]] = []
+    loops: list[LoopEvent] = []
     for i, step in enumerate(log, start=1):
         t0 = time.perf_counter()
         estimator.step(step)
@@ -96,21 +100,22 @@ def run(
         covs.append(snap.pose_cov)
         if keep_snapshots:
             snaps.append(snap)
-        assoc = snap.extras.get("assoc")
+        loops.extend(snap.new_loops)
+        assoc = snap.association
         if assoc is not None and len(assoc) == len(step.observations):
             assigned.append(np.asarray(assoc, dtype=np.int64))
             truth_ids.append(step.observations.landmark_id)
         if on_step is not None:
             on_step(i, snap)
         tick(i)
-    finalize = getattr(estimator, "finalize", None)
-    if callable(finalize):  # smoothers optimise to convergence once the data are in
-        finalize()
-        snap = estimator.estimate()
-    traj = snap.extras.get("trajectory")
+    estimator.finalize()  # smoothers optimise to convergence once the data are in
+    snap = estimator.estimate()
+    loops.extend(snap.new_loops)
+    traj = snap.trajectory
     trajectory = np.asarray(traj, dtype=np.float64) if traj is not None and len(traj) == t + 1 else poses
     pose_covs = None if any(c is None for c in covs) else np.asarray(covs)
-    result = RunResult(poses, trajectory, pose_covs, step_s, snap, snaps if keep_snapshots else None)
+    result = RunResult(poses, trajectory, pose_covs, step_s, snap, snaps if keep_snapshots else None,
+                       loops=tuple(loops), closes_loops=isinstance(estimator, SupportsLoopClosure))
     result.metrics.update(score(result, log))
     if assigned and np.any(log.obs_id >= 0):  # the source knows ids: score the association
         result.metrics.update(run_association_scores(assigned, truth_ids))
@@ -134,14 +139,13 @@ def score(result: RunResult, log: Log) -> dict[str, Any]:
             rpe_rot_rmse_rad=r.rot_rmse_rad,
             final_pose_error_m=float(np.hypot(*(result.trajectory[-1, :2] - log.true_poses[-1, :2]))),
         )
-        loops = result.final.extras.get("loops")
-        if loops is not None:
+        if result.closes_loops:
             # false loop: the two poses are not truly near each other, or the constraint contradicts the truth
             true = log.true_poses
-            acc = [(a, b, z) for a, b, ok, z in loops if ok]
-            far = [float(np.hypot(*(true[a, :2] - true[b, :2]))) > LOOP_TRUE_DISTANCE_M
-                   or float(np.hypot(*se2.local(se2.between(true[a], true[b]), z)[:2])) > LOOP_TRUE_ERROR_M
-                   for a, b, z in acc]
+            acc = [lp for lp in result.loops if lp.accepted]
+            far = [float(np.hypot(*(true[lp.a, :2] - true[lp.b, :2]))) > LOOP_TRUE_DISTANCE_M
+                   or float(np.hypot(*se2.local(se2.between(true[lp.a], true[lp.b]), lp.T_a_b)[:2]))
+                   > LOOP_TRUE_ERROR_M for lp in acc]
             m.update(loops_accepted=len(acc), loops_false=int(sum(far)))
     return m
 

@@ -3,7 +3,7 @@
 :class:`LandmarkMap` is a plain container of stacked arrays (means (N,2), covariances (N,2,2), ids (N,), sighting
 counts, first/last step seen, a ``confirmed`` flag) that any back end can fill and hand to the lab. Its
 :meth:`LandmarkMap.estimate_view` returns the confirmed landmarks only, in the shapes of
-:class:`~slam2d.filters.base.Estimate`.
+:class:`~slam2d.estimator.Estimate`.
 
 Persistence (dynamic-object filtering): a new landmark starts *tentative*; it is *confirmed* once it has been
 sighted ``min_sightings`` times and its sightings agree with one fixed point: the weighted residual sum of squares

@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from slam2d.estimator import Estimate, Estimator, GraphView, SupportsGraphView, SupportsLoopClosure
 from slam2d.eval.trajectory import ate
-from slam2d.filters.base import Estimate, Estimator
 from slam2d.geometry import se2
 from slam2d.lab.registry import estimator_names, get_spec, make_estimator
 from slam2d.log import Step
@@ -305,9 +305,9 @@ class SimSession(Session):
             what = " or ".join(ESTIMATOR_LABELS.get(p, repr(p)) for p in self.prefer)
             notes.append(f"not available yet: {what}. "
                          f"Showing '{self.values['estimator']}' instead{self.need_note}.")
-        if self.heat and "cov" not in self.snap.extras:
+        if self.heat and self.snap.full_cov is None:
             notes.append(f"covariance heat map: estimator '{self.values['estimator']}' does not report a full "
-                         "covariance (Estimate.extras['cov']).")
+                         "covariance (Estimate.full_cov).")
         if self.page == "fastslam" and not self._estimator_overrides(str(self.values["estimator"])):
             notes.append(f"particle-count slider: estimator '{self.values['estimator']}' has no particle-count "
                          f"setting (looked for {list(PARTICLE_FIELDS)}).")
@@ -346,11 +346,12 @@ class SimSession(Session):
     def _close_loop(self) -> None:
         """Ask the back end to close a loop from the latest observations now (back ends with ``close_loop_now``)."""
         self.notices = [n for n in self.notices if not n.startswith("close loop")]
-        fn = getattr(self.est, "close_loop_now", None)
-        if fn is None or self.last_step is None:
-            self.notices.append(f"close loop: estimator '{self.values['estimator']}' cannot close loops on request"
-                                if fn is None else "close loop: drive first; there are no observations yet")
+        if not isinstance(self.est, SupportsLoopClosure) or self.last_step is None:
+            self.notices.append("close loop: drive first; there are no observations yet" if self.last_step is None
+                                else f"close loop: estimator '{self.values['estimator']}' cannot close loops on request"
+                                )
             return
+        fn = self.est.close_loop_now
         obs = self.last_step.observations
         try:
             ok = bool(fn(obs.z[obs.landmark_id != -2]))
@@ -392,7 +393,7 @@ class SimSession(Session):
             self._update_notices()
             return
         self.est_ms = 1e3 * (time.perf_counter() - t0)
-        self.resamples += bool(self.snap.extras.get("resampled", False))
+        self.resamples += bool(self.snap.particles is not None and self.snap.particles.resampled)
         self.last_step = step
         ids = raw.observations.landmark_id  # "seen" counts what the sensor saw, before any break-it damage
         self.seen.update(int(i) for i in np.unique(ids[ids >= 0]))
@@ -435,7 +436,7 @@ class SimSession(Session):
     # --- numbers ------------------------------------------------------------------------------------------------
     def trajectory(self) -> Array:
         """The estimated trajectory: the back end's own (re-estimated) one when it reports it, else pose history."""
-        traj = self.snap.extras.get("trajectory")
+        traj = self.snap.trajectory
         if traj is not None and len(traj) == len(self.true_path):
             return np.asarray(traj, dtype=np.float64)
         return np.asarray(self.est_path)
@@ -450,10 +451,10 @@ class SimSession(Session):
 
     def numbers(self) -> dict[str, float]:
         snap = self.snap
-        sd = snap.extras.get("state_dim")
-        parts = snap.extras.get("particles")
-        n_eff = snap.extras.get("n_eff")
-        tent = snap.extras.get("tentative_landmarks")
+        sd = snap.state_dim
+        parts = snap.particles.poses if snap.particles is not None else None
+        n_eff = snap.particles.n_eff if snap.particles is not None else None
+        tent = snap.tentative_landmarks
         pose = self.sim.pose
         return {
             "step": float(self.sim.index),
@@ -462,7 +463,8 @@ class SimSession(Session):
             "landmarks_mapped": float(len(snap.landmarks)),
             "landmarks_tentative": float(len(tent)) if tent is not None else float("nan"),
             "resamples": float(self.resamples),
-            "loops_accepted": float(snap.extras.get("loops_accepted", float("nan"))),
+            "loops_accepted": float(snap.diagnostics.loops_accepted)
+            if isinstance(self.est, SupportsLoopClosure) else float("nan"),
             "state_dim": float(sd) if sd is not None else float("nan"),
             "ate_rmse_m": self.ate_rmse(),
             "pose_error_m": float(np.hypot(*(np.asarray(snap.pose)[:2] - pose[:2]))),
@@ -473,7 +475,7 @@ class SimSession(Session):
         }
 
     def heat_matrix(self) -> Array | None:
-        cov = self.snap.extras.get("cov")
+        cov = self.snap.full_cov
         if cov is None:
             return None
         if self._heat_cache[0] != self.sim.index:
@@ -507,21 +509,15 @@ class SimSession(Session):
                 if self.values["obs_ellipses"]:
                     out.append(("OCOV", observation_covariances(est_pose, z, self.sim.config.sensor.covariance)
                                 .reshape(-1, 4)))
-        parts = snap.extras.get("particles")
+        parts = snap.particles.poses if snap.particles is not None else None
         if parts is not None and len(parts):
             out.append(("PART", np.asarray(parts, dtype=np.float64).reshape(-1, np.asarray(parts).shape[-1])[:, :3]))
         if self.heat:
             h = self.heat_matrix()
             if h is not None:
                 out.append(("HEAT", h))
-        graph = snap.extras.get("graph")
-        if isinstance(graph, Mapping):
-            out.extend(_graph_sections(graph))
-        elif self.page in ("graph", "loop") and hasattr(self.est, "graph_view"):
-            try:
-                out.extend(_graph_view_sections(self.est.graph_view()))
-            except Exception:  # a drawing aid only: a changed view format must not break the page
-                pass
+        if self.page in ("graph", "loop") and isinstance(self.est, SupportsGraphView):
+            out.extend(_graph_view_sections(self.est.graph_view()))
         return out
 
 
@@ -535,14 +531,14 @@ def _lookup(keys: NDArray[np.int64], values: Array, query: NDArray[np.int64]) ->
     return values[idx]
 
 
-def _graph_view_sections(view: Mapping[str, Any]) -> Sections:
+def _graph_view_sections(view: GraphView) -> Sections:
     """Segments for a back end's ``graph_view()``: poses/points with keys, edges per factor kind as key pairs."""
-    pk = np.asarray(view["pose_keys"], dtype=np.int64)
-    poses = np.asarray(view["poses"], dtype=np.float64).reshape(-1, 3)[:, :2]
-    qk = np.asarray(view["point_keys"], dtype=np.int64)
-    pts = np.asarray(view["points"], dtype=np.float64).reshape(-1, 2)
+    pk = view.pose_keys
+    poses = view.poses[:, :2]
+    qk = view.point_keys
+    pts = view.points
     segs = []
-    for kind, keys in dict(view["edges"]).items():
+    for kind, keys in view.edges.items():
         if kind not in ("between", "range_bearing", "point", "bearing", "range"):
             continue  # unary factors (priors, GPS) have no edge to draw
         k = np.asarray(keys, dtype=np.int64).reshape(-1, 2)
@@ -552,23 +548,6 @@ def _graph_view_sections(view: Mapping[str, Any]) -> Sections:
             segs.append(np.hstack([_lookup(pk, poses, k[:, 0]), _lookup(qk, pts, k[:, 1])]))
     edges = np.vstack(segs) if segs else np.zeros((0, 4))
     return [("GNOD", poses), ("GEDG", edges[:: max(1, len(edges) // 3000)])]
-
-
-def _graph_sections(graph: Mapping[str, Any]) -> Sections:
-    """Draw a back end's graph: ``nodes`` (V,>=2) positions and ``edges`` (E,2) node-index pairs, when given."""
-    try:
-        nodes = np.asarray(graph.get("nodes"), dtype=np.float64).reshape(-1, np.asarray(graph.get("nodes")).shape[-1])
-        edges = np.asarray(graph.get("edges"), dtype=np.int64).reshape(-1, 2)
-    except (TypeError, ValueError, IndexError):
-        return []
-    if nodes.ndim != 2 or nodes.shape[1] < 2 or (len(edges) and (edges.min() < 0 or edges.max() >= len(nodes))):
-        return []
-    segs = np.hstack([nodes[edges[:, 0], :2], nodes[edges[:, 1], :2]]) if len(edges) else np.zeros((0, 4))
-    return [("GNOD", nodes[:, :2]), ("GEDG", segs)]
-
-
-# -------------------------------------------------------------------------------------------------------------------
-# data association (page 4)
 
 
 class AssociationSession(Session):
