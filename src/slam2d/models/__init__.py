@@ -1,5 +1,9 @@
 """Motion and sensor models, each with Jacobians and (where it exists) an inverse model."""
 
+from slam2d.models.floor_markers import FloorCameraConfig as FloorCameraConfig
+from slam2d.models.floor_markers import marker_in_robot as marker_in_robot
+from slam2d.models.floor_markers import marker_in_robot_jacobians as marker_in_robot_jacobians
+from slam2d.models.floor_markers import sense_floor_markers as sense_floor_markers
 from slam2d.models.lidar import LidarConfig as LidarConfig
 from slam2d.models.lidar import cast_rays as cast_rays
 from slam2d.models.lidar import scan_to_points as scan_to_points
