@@ -199,3 +199,13 @@ def test_range_cull_drops_only_segments_the_lidar_cannot_reach():
         pose = np.array([*xy, heading])
         a = np.linspace(-np.pi, np.pi, 90)
         np.testing.assert_array_equal(cast_rays(pose, a, near, 30.0), cast_rays(pose, a, full, 30.0))
+
+
+def test_fleet_is_placed_in_one_pass_exactly_as_object_by_object():
+    lay = _layout(2)
+    n_walls = len(lay.world.walls)
+    for t in (0.0, 1.7, 33.3, 1234.5):
+        per_object = np.vstack([m.segments(t) for m in lay.world.moving])
+        np.testing.assert_allclose(lay.world.segments_at(t)[n_walls:], per_object, rtol=0, atol=1e-12)
+        np.testing.assert_array_equal(lay.world.moving_positions(t),
+                                      np.array([m.position(t) for m in lay.world.moving]))

@@ -10,6 +10,8 @@ from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
 
+_TILE_M = 5.0  # tile side of the wall lookup in World.segments_near
+
 
 @dataclass(frozen=True)
 class MovingObject:
@@ -75,21 +77,81 @@ class World:
     """(xmin, ymin, xmax, ymax) of the area the world occupies (m)."""
     floor_markers: Array = field(default_factory=lambda: np.zeros((0, 2)))
 
+    @cached_property
+    def _fleet(self) -> dict[str, Array]:
+        """Every moving object's path padded to the longest one, so all of them are placed in one pass."""
+        n, p = len(self.moving), max((len(m.path) for m in self.moving), default=0)
+        pts = np.zeros((n, p + 1, 2))
+        seg = np.zeros((n, p, 2))
+        lengths = np.ones((n, p))
+        cum = np.full((n, p), np.inf)  # padding never counts as a passed leg
+        legs = np.zeros(n, dtype=np.int64)
+        for i, m in enumerate(self.moving):
+            mp, ms, ml, mc = m._legs
+            k = len(ml)
+            pts[i, : k + 1], seg[i, :k], lengths[i, :k], cum[i, :k], legs[i] = mp, ms, ml, mc, k
+        half = np.array([[0.5 * m.size_m[0], 0.5 * m.size_m[1]] for m in self.moving]).reshape(n, 2)
+        return {"pts": pts, "seg": seg, "lengths": lengths, "cum": cum, "legs": legs,
+                "total": cum[np.arange(n), legs - 1] if n else np.zeros(0),
+                "speed": np.array([m.speed_mps for m in self.moving]),
+                "phase": np.array([m.phase_m for m in self.moving]),
+                "aligned": np.array([m.heading_aligned for m in self.moving], dtype=bool),
+                "local": half[:, None, :] * np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])}
+
+    def _fleet_state(self, time_s: float) -> tuple[Array, Array]:
+        """(M,2) centres and (M,2) unit directions of travel: :meth:`MovingObject._locate` for all at once."""
+        f = self._fleet
+        rows = np.arange(len(self.moving))
+        s = (f["speed"] * time_s + f["phase"]) % f["total"]
+        k = np.minimum(np.sum(f["cum"] <= s[:, None], axis=1), f["legs"] - 1)
+        length = f["lengths"][rows, k]
+        s0 = s - (f["cum"][rows, k] - length)
+        seg = f["seg"][rows, k]
+        return f["pts"][rows, k] + seg * (s0 / length)[:, None], seg / length[:, None]
+
     def segments_at(self, time_s: float) -> Array:
         """Walls plus the outlines of moving objects at ``time_s``."""
         if not self.moving:
             return self.walls
-        return np.vstack([self.walls, *[m.segments(time_s) for m in self.moving]])
+        centre, d = self._fleet_state(time_s)
+        local = self._fleet["local"]  # (M,4,2)
+        aligned = self._fleet["aligned"]
+        if np.any(aligned):  # rotate the boxes that face along their path: R(d) @ corner
+            rot = np.stack([local[..., 0] * d[:, None, 0] - local[..., 1] * d[:, None, 1],
+                            local[..., 0] * d[:, None, 1] + local[..., 1] * d[:, None, 0]], axis=-1)
+            local = np.where(aligned[:, None, None], rot, local)
+        corners = centre[:, None, :] + local
+        boxes = np.concatenate([corners, np.roll(corners, -1, axis=1)], axis=-1).reshape(-1, 4)
+        return np.vstack([self.walls, boxes])
 
     def segments_near(self, time_s: float, xy: Array, radius_m: float) -> Array:
-        """The segments of :meth:`segments_at` that come within ``radius_m`` of ``xy``: a lidar with that range
-        cannot see the others, and a big warehouse has thousands of them (an O(W) cull before the O(B x W) cast)."""
-        seg = self.segments_at(time_s)
-        return seg[segment_distances(np.asarray(xy, dtype=np.float64), seg) <= radius_m]
+        """The segments of :meth:`segments_at` that a lidar at ``xy`` with range ``radius_m`` could hit: every one
+        within ``radius_m`` of ``xy`` (and a few a little farther; those can only report hits beyond the range).
+
+        Walls are looked up per 5 m tile (cached: the tile's walls within ``radius_m`` plus half the tile's diagonal
+        of its centre), so a big warehouse's thousands of segments are not all measured at every scan."""
+        p = np.asarray(xy, dtype=np.float64)
+        key = (int(np.floor(p[0] / _TILE_M)), int(np.floor(p[1] / _TILE_M)), float(radius_m))
+        walls = self._tile_cache.get(key)
+        if walls is None:
+            centre = (np.array(key[:2], dtype=np.float64) + 0.5) * _TILE_M
+            reach = radius_m + _TILE_M / np.sqrt(2.0) + 1e-9
+            walls = self.walls[segment_distances(centre, self.walls) <= reach]
+            self._tile_cache[key] = walls
+        if not self.moving:
+            return walls
+        boxes = self.segments_at(time_s)[len(self.walls):]
+        return np.vstack([walls, boxes[segment_distances(p, boxes) <= radius_m]])
+
+    @cached_property
+    def _tile_cache(self) -> dict[tuple[int, int, float], Array]:
+        return {}
 
     def moving_positions(self, time_s: float) -> Array:
         """(M,2) centres of the moving objects."""
-        return np.array([m.position(time_s) for m in self.moving]).reshape(-1, 2)
+        if not self.moving:
+            return np.zeros((0, 2))
+        return self._fleet_state(time_s)[0]
 
 
 def segment_distances(p: Array, segments: Array) -> Array:
