@@ -209,3 +209,18 @@ def test_fleet_is_placed_in_one_pass_exactly_as_object_by_object():
         np.testing.assert_allclose(lay.world.segments_at(t)[n_walls:], per_object, rtol=0, atol=1e-12)
         np.testing.assert_array_equal(lay.world.moving_positions(t),
                                       np.array([m.position(t) for m in lay.world.moving]))
+
+
+def test_a_forklift_under_the_drone_is_flown_over_not_scanned_from_inside():
+    lay = _layout(0)
+    m = lay.world.moving[0]
+    t = 12.0
+    centre = m.position(t)
+    near = lay.world.segments_near(t, centre + 0.1, 30.0)
+    own = m.segments(t)
+    assert not any(np.allclose(own[0], s, atol=1e-9) for s in near)
+    # from 3 m away it is an obstacle like any other
+    _, d = lay.world._fleet_state(t)
+    side = centre + 3.0 * np.array([-d[0, 1], d[0, 0]])
+    near = lay.world.segments_near(t, side, 30.0)
+    assert sum(any(np.allclose(o, s, atol=1e-9) for s in near) for o in own) == 4

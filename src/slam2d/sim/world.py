@@ -141,7 +141,20 @@ class World:
         if not self.moving:
             return walls
         boxes = self.segments_at(time_s)[len(self.walls):]
-        return np.vstack([walls, boxes[segment_distances(p, boxes) <= radius_m]])
+        keep = segment_distances(p, boxes) <= radius_m
+        # a forklift right under the sensor is being flown over: it does not wrap the scan in its own box
+        keep &= ~np.repeat(self._contains(time_s, p), 4)
+        return np.vstack([walls, boxes[keep]])
+
+    def _contains(self, time_s: float, p: Array) -> NDArray[np.bool_]:
+        """(M,) whether each moving object's box contains point ``p``."""
+        centre, d = self._fleet_state(time_s)
+        rel = p - centre
+        aligned = self._fleet["aligned"]
+        along = np.where(aligned, rel[:, 0] * d[:, 0] + rel[:, 1] * d[:, 1], rel[:, 0])
+        across = np.where(aligned, -rel[:, 0] * d[:, 1] + rel[:, 1] * d[:, 0], rel[:, 1])
+        half = self._fleet["local"][:, 2]  # (hx, hy)
+        return np.asarray((np.abs(along) <= half[:, 0]) & (np.abs(across) <= half[:, 1]), dtype=bool)
 
     @cached_property
     def _tile_cache(self) -> dict[tuple[int, int, float], Array]:
