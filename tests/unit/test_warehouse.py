@@ -120,7 +120,7 @@ def test_forklifts_stay_on_roads_and_never_enter_racks():
     lay = _layout(1)
     racks = w.rack_footprints()
     ys, xs = w.road_centres_y(), w.cross_centres_x()
-    for t in np.linspace(0.0, 600.0, 601):
+    for t in np.linspace(0.0, 600.0, 241):
         for m in lay.world.moving:
             corners = m.corners(float(t))
             edge_pts = np.vstack([corners, 0.5 * (corners + np.roll(corners, -1, axis=0)), corners.mean(axis=0)])
@@ -224,3 +224,33 @@ def test_a_forklift_under_the_drone_is_flown_over_not_scanned_from_inside():
     side = centre + 3.0 * np.array([-d[0, 1], d[0, 0]])
     near = lay.world.segments_near(t, side, 30.0)
     assert sum(any(np.allclose(o, s, atol=1e-9) for s in near) for o in own) == 4
+
+
+def test_marker_model_agrees_with_the_se2_inverse_transform():
+    from slam2d.geometry import se2
+
+    rng = np.random.default_rng(4)
+    pose = np.column_stack([rng.normal(size=(50, 2)) * 10, rng.uniform(-np.pi, np.pi, 50)])
+    pts = rng.normal(size=(50, 2)) * 10
+    np.testing.assert_allclose(marker_in_robot(pose, pts), se2.inverse_transform_points(pose, pts), atol=1e-12)
+
+
+def test_the_lidar_sees_the_moved_pallets_and_nothing_else_changes():
+    f0, f1 = _layout(6, flight=0), _layout(6, flight=1)
+    w = WarehouseConfig()
+    moved = np.setxor1d(f0.occupied, f1.occupied)
+    moved_boxes = boxes_to_segments(f0.slot_centres[moved], PALLET_SIZE_M)
+    lidar = CHALLENGE.resolved().lidar
+    changed_beams = 0
+    for y in w.aisle_centres_y()[::2]:
+        for x in np.arange(6.0, 95.0, 16.0):
+            pose = np.array([x, y, 0.3])
+            r0 = cast_rays_culled(pose, lidar.angles(), f0.world.walls, 30.0)
+            r1 = cast_rays_culled(pose, lidar.angles(), f1.world.walls, 30.0)
+            diff = np.flatnonzero(r0 != r1)
+            changed_beams += len(diff)
+            if len(diff):
+                # every changed beam ends on a moved pallet in one of the two flights
+                r_pallet = cast_rays(pose, lidar.angles()[diff], moved_boxes, 30.0)
+                assert np.all(np.isclose(r_pallet, np.minimum(r0[diff], r1[diff]), atol=1e-9))
+    assert changed_beams > 30  # pallets are visible from the aisles
