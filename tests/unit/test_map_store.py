@@ -46,6 +46,8 @@ def _snapshot(seed=0, world="sim:test", k=6, beams=90, rows=50, cols=70) -> MapS
         occupancy_origin=np.array([-1.5, 2.25]),
         occupancy_resolution_m=0.05,
         metadata={"source": "test", "seed": seed},
+        layers={"floor_markers": rng.normal(size=(7, 2)), "dynamic": rng.random((rows, cols)).astype(np.float32),
+                "mask": rng.random(5) > 0.5, "ids": np.arange(4, dtype=np.int64)},
     )
 
 
@@ -57,7 +59,11 @@ def test_round_trip_is_exact(tmp_path):
     for f in ("keyframe_poses", "keyframe_scans", "descriptors", "edge_information", "occupancy_logodds"):
         np.testing.assert_array_equal(getattr(back, f), getattr(snap, f))
         assert getattr(back, f).dtype == getattr(snap, f).dtype
+    for name, arr in snap.layers.items():
+        assert back.layers[name].dtype == arr.dtype
+        np.testing.assert_array_equal(back.layers[name], arr)
     info = MapStore.info(path)
+    assert info.counts["layers"] == 4
     assert info.schema_version == SCHEMA_VERSION and info.world_id == "sim:test"
     assert info.counts["keyframes"] == 6 and info.counts["edges"] == 5 and info.created_at
     # WAL mode, our application id, and no journal files left beside the map after a write or a read
@@ -87,6 +93,10 @@ def test_map_from_a_simulated_run_round_trips(tmp_path):
     occ = snap.occupancy_logodds > 0.6
     near_wall = binary_dilation(rasterize_segments(grid, log.walls), np.ones((5, 5), dtype=bool))
     assert occ.sum() > 200 and (occ & near_wall).sum() > 0.9 * occ.sum()
+    assert snap.layers == {}  # no floor markers in the small warehouse; the challenge one keeps its markers
+    marked = simulate("warehouse-challenge", seed=0, steps=30, floor_markers=True)
+    assert marked.true_markers is not None
+    np.testing.assert_array_equal(snapshot_from_truth(marked).layers["floor_markers"], marked.true_markers)
     # flights of one warehouse share a world id; seeds and layouts do not
     base = {"scenario": "warehouse-challenge", "seed": 0, "config": {"name": "warehouse-challenge",
                                                                       "warehouse": {"aisles": 14, "flight": 0}}}
@@ -145,6 +155,18 @@ def test_files_that_are_not_good_maps_give_clear_errors_and_are_never_overwritte
     MapStore.write(good, _snapshot(world="sim:other"), replace_other_world=True)
     assert MapStore.info(good).world_id == "sim:other"
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []  # no temp files left
+
+
+def test_bad_snapshots_and_unwritable_targets_are_refused(tmp_path):
+    fields = {f: getattr(_snapshot(), f) for f in MapSnapshot.__dataclass_fields__}
+    with pytest.raises(ValueError, match="metadata must be JSON"):
+        MapSnapshot(**{**fields, "metadata": {"x": object()}})
+    with pytest.raises(ValueError, match="layers\\['bad'\\]"):
+        MapSnapshot(**{**fields, "layers": {"bad": np.array(["a"])}})
+    with pytest.raises(ValueError, match="keyframe_scans"):
+        MapSnapshot(**{**fields, "keyframe_scans": fields["keyframe_scans"].astype(np.float64)})
+    with pytest.raises(MapFormatError, match="nowhere/m.db: cannot write a map there"):
+        MapStore.write(tmp_path / "nowhere" / "m.db", _snapshot())
 
 
 def test_rows_that_disagree_with_the_recorded_counts_are_caught(tmp_path):

@@ -91,6 +91,9 @@ class MapSnapshot:
     occupancy_resolution_m: float
     metadata: Mapping[str, Any] = field(default_factory=dict)
     """free-form JSON (what made the map, seeds, configs); ``created_at``/``created_by`` are filled on write."""
+    layers: Mapping[str, NDArray[Any]] = field(default_factory=dict)
+    """optional extra named arrays (float64, float32, int64 or bool), e.g. ``floor_markers`` (M,2) or a dynamic
+    layer: stored and returned exactly, without a schema change."""
 
     def __post_init__(self) -> None:
         k = self.keyframe_poses.shape[0]
@@ -118,18 +121,32 @@ class MapSnapshot:
             raise ValueError(f"MapSnapshot.occupancy_resolution_m must be > 0 (got {self.occupancy_resolution_m})")
         if not self.world_id:
             raise ValueError("MapSnapshot.world_id must not be empty")
+        try:
+            json.dumps(dict(self.metadata))
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"MapSnapshot.metadata must be JSON-serialisable ({e})") from None
+        for name, a in self.layers.items():
+            if not (isinstance(name, str) and name) or np.asarray(a).dtype not in _LAYER_DTYPES:
+                raise ValueError(f"MapSnapshot.layers[{name!r}] must be a named array of dtype float64, float32, "
+                                 f"int64 or bool")
 
     def counts(self) -> dict[str, int]:
         return {"keyframes": int(self.keyframe_poses.shape[0]), "nodes": len(self.node_ids),
                 "edges": len(self.edge_nodes), "beams": int(self.keyframe_scans.shape[1]),
                 "descriptor_dim": int(self.descriptors.shape[1]),
-                "occupancy_cells": int(self.occupancy_logodds.size)}
+                "occupancy_cells": int(self.occupancy_logodds.size), "layers": len(self.layers)}
 
     def equals(self, other: MapSnapshot) -> bool:
         """Exact equality of every array, scalar and the metadata."""
         for f in ("keyframe_poses", "keyframe_scans", "descriptors", "scan_angles_rad", "node_ids", "node_poses",
                   "edge_nodes", "edge_poses", "edge_information", "occupancy_logodds", "occupancy_origin"):
             a, b = getattr(self, f), getattr(other, f)
+            if a.dtype != b.dtype or a.shape != b.shape or not np.array_equal(a, b):
+                return False
+        if sorted(self.layers) != sorted(other.layers):
+            return False
+        for n, a in self.layers.items():
+            b = other.layers[n]
             if a.dtype != b.dtype or a.shape != b.shape or not np.array_equal(a, b):
                 return False
         return (self.world_id == other.world_id and self.scan_max_range_m == other.scan_max_range_m
@@ -165,6 +182,9 @@ def _fsync_dir(directory: Path) -> None:
         os.close(fd)
 
 
+_LAYER_DTYPES = (np.dtype(np.float64), np.dtype(np.float32), np.dtype(np.int64), np.dtype(np.bool_))
+
+
 def _blob(a: NDArray[Any], dtype: type) -> bytes:
     return zlib.compress(np.ascontiguousarray(a, dtype=dtype).tobytes(), 6)
 
@@ -182,6 +202,8 @@ class MapStore:
         """Write ``snapshot`` to ``path`` atomically; returns the path. The previous file is replaced only once
         the new one is complete."""
         path = Path(path)
+        if not path.parent.is_dir():
+            raise MapFormatError(f"{path}: cannot write a map there (directory {path.parent} does not exist)")
         if path.exists():
             MapStore._check_replaceable(path, snapshot.world_id, replace_other_world)
         tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
@@ -191,6 +213,11 @@ class MapStore:
             MapStore._write_file(tmp, snapshot, created_by)
             os.replace(tmp, path)
             _fsync_dir(path.parent)
+        except (sqlite3.Error, OSError) as e:
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+            raise MapFormatError(f"{path}: could not write the map ({type(e).__name__}: {e}); the previous file, "
+                                 "if any, is unchanged") from None
         except BaseException:
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
@@ -244,7 +271,8 @@ class MapStore:
             arrays: dict[str, tuple[NDArray[Any], type]] = {
                 "scan_angles_rad": (s.scan_angles_rad, np.float64),
                 "occupancy_logodds": (s.occupancy_logodds, np.float32),
-                "occupancy_origin": (s.occupancy_origin, np.float64)}
+                "occupancy_origin": (s.occupancy_origin, np.float64),
+                **{f"layer:{n}": (np.asarray(a), np.asarray(a).dtype.type) for n, a in s.layers.items()}}
             con.executemany("INSERT INTO arrays VALUES (?, ?, ?, ?)",
                             ((n, np.dtype(dt).name, json.dumps(list(a.shape)), _blob(a, dt))
                              for n, (a, dt) in arrays.items()))
@@ -334,7 +362,7 @@ class MapStore:
             desc = np.stack([_unblob(r[4], np.float64, (dim,)) for r in kf]) if kf else np.zeros((0, dim))
             nodes = con.execute("SELECT id, x, y, theta FROM nodes ORDER BY id").fetchall()
             edges = con.execute("SELECT a, b, dx, dy, dtheta, information FROM edges ORDER BY id").fetchall()
-        except (sqlite3.DatabaseError, zlib.error, ValueError, KeyError) as e:
+        except (sqlite3.DatabaseError, zlib.error, ValueError, KeyError, TypeError) as e:
             raise MapFormatError(f"{path}: corrupt slam2d map ({type(e).__name__}: {e})") from None
         finally:
             con.close()
@@ -356,6 +384,7 @@ class MapStore:
                 occupancy_origin=arrays["occupancy_origin"],
                 occupancy_resolution_m=float(meta["occupancy_resolution_m"]),
                 metadata=meta.get("user", {}),
+                layers={n.split(":", 1)[1]: a for n, a in arrays.items() if n.startswith("layer:")},
             )
         except (ValueError, KeyError) as e:
             raise MapFormatError(f"{path}: inconsistent slam2d map ({e})") from None
@@ -390,7 +419,8 @@ def snapshot_from_truth(log: Log, *, keyframe_every_m: float = 1.0, keyframe_eve
                         occupancy: OccupancyConfig | None = None) -> MapSnapshot:
     """A map built from a simulated run's TRUE poses: keyframes where the robot moved ``keyframe_every_m`` or
     turned ``keyframe_every_rad`` since the last one, the occupancy grid of the keyframe scans, and a chain pose
-    graph over the keyframes (true relative poses, nominal information for 5 cm / 0.6 deg). This is a mapping-from-
+    graph over the keyframes (true relative poses, nominal information for 5 cm / 0.6 deg), and the floor markers
+    (layer ``floor_markers``, marker ``i`` has id ``i``) when the world has them. This is a mapping-from-
     truth utility for tests and the saved-map workflow until the lidar estimator writes its own maps."""
     if log.true_poses is None or log.scan_step is None or log.scan_ranges_m is None or log.scan_angles_rad is None:
         raise ValueError("map from truth needs a simulated log with true poses and lidar scans")
@@ -436,4 +466,5 @@ def snapshot_from_truth(log: Log, *, keyframe_every_m: float = 1.0, keyframe_eve
                   "flight": flight,
                   "steps": log.num_steps, "keyframe_every_m": keyframe_every_m,
                   "keyframe_every_rad": keyframe_every_rad},
+        layers={} if log.true_markers is None else {"floor_markers": log.true_markers.copy()},
     )
