@@ -254,3 +254,22 @@ def test_the_lidar_sees_the_moved_pallets_and_nothing_else_changes():
                 r_pallet = cast_rays(pose, lidar.angles()[diff], moved_boxes, 30.0)
                 assert np.all(np.isclose(r_pallet, np.minimum(r0[diff], r1[diff]), atol=1e-9))
     assert changed_beams > 30  # pallets are visible from the aisles
+
+
+def test_a_streaming_simulator_yields_the_same_steps_and_keeps_no_log():
+    cfg = _cfg(floor_markers=True, steps=40).resolved()
+    log = simulate(cfg, seed=3)
+    live = Simulator(cfg, seed=3, record=False)
+    driver = live.driver()
+    for t in range(1, 41):
+        v, w = driver.command(live.pose, None)
+        s = live.step(v, w)
+        ref = log.step(t)
+        np.testing.assert_array_equal(s.odometry, ref.odometry)
+        assert s.scan is not None and ref.scan is not None
+        np.testing.assert_array_equal(s.scan.ranges_m, ref.scan.ranges_m)
+        assert s.markers is not None and ref.markers is not None
+        np.testing.assert_array_equal(s.markers.ids, ref.markers.ids)
+    assert live.record is False and live._rec["scan"] == []
+    with pytest.raises(ValueError, match="record=False"):
+        live.to_log()

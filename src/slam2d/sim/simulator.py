@@ -50,7 +50,8 @@ class Simulator:
     The web lab drives this directly from key presses; :func:`simulate` drives it with the scenario's driver.
     """
 
-    def __init__(self, config: ScenarioConfig | None = None, seed: int = 0, world: World | None = None) -> None:
+    def __init__(self, config: ScenarioConfig | None = None, seed: int = 0, world: World | None = None,
+                 record: bool = True) -> None:
         self.config = (config or ScenarioConfig()).resolved()
         self.seed = int(seed)
         self.rng = spawn_streams(self.seed)
@@ -63,6 +64,8 @@ class Simulator:
         self.waypoints = layout.waypoints
         self.initial_pose = layout.initial_pose.astype(np.float64)
         self.pose = self.initial_pose.copy()
+        self.record = record
+        """keep every step for :meth:`to_log`; False streams (memory stays flat over a long shift)."""
         self.time_s = 0.0
         self.index = 0
         self._has_scan = self.config.lidar.enabled and len(self.world.walls) > 0
@@ -120,11 +123,10 @@ class Simulator:
         if len(self.world.floor_markers) and self.index % cfg.camera.read_every == 0:
             xy, mid = sense_floor_markers(self.pose, self.world.floor_markers, cfg.camera, self.rng["markers"])
             markers = MarkerReadings(xy, mid)
-            r0 = self._rec
-            r0["marker_step"].append(np.full(len(mid), self.index, dtype=np.int64))
-            r0["marker_xy"].append(xy)
-            r0["marker_id"].append(mid)
 
+        step = Step(self.index, self.time_s, dt, odom, obs, gps, scan, markers)
+        if not self.record:
+            return step
         r = self._rec
         r["odom"].append(odom)
         r["stamps"].append(self.time_s)
@@ -141,7 +143,11 @@ class Simulator:
             r["scan_step"].append(self.index)
             r["scan"].append(scan.ranges_m)
         r["dyn"].append(dyn)
-        return Step(self.index, self.time_s, dt, odom, obs, gps, scan, markers)
+        if markers is not None:
+            r["marker_step"].append(np.full(len(markers), self.index, dtype=np.int64))
+            r["marker_xy"].append(markers.xy_m)
+            r["marker_id"].append(markers.ids)
+        return step
 
     def metadata(self) -> dict[str, Any]:
         """Seed, full resolved config, sensor/motion parameters and versions (recorded in every Log)."""
@@ -160,6 +166,8 @@ class Simulator:
 
     def to_log(self) -> Log:
         """Everything simulated so far as a :class:`Log` (with ground truth)."""
+        if not self.record:
+            raise ValueError("this Simulator was made with record=False: it streams steps and keeps no Log")
         r = self._rec
         t = len(r["odom"])
         z = np.vstack(r["z"]) if r["z"] else np.zeros((0, 2))
