@@ -35,6 +35,12 @@ def per_call_ms(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
     return float(np.median(a)), float(np.percentile(a, 95))
 
 
+def current_rss_mib() -> float:
+    """Resident set size now (Linux /proc; the peak from getrusage would hide a flat curve after a big step)."""
+    with open("/proc/self/statm") as fh:
+        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
 def main() -> None:
     cfg = with_overrides(ScenarioConfig(name="warehouse-challenge"), {"floor_markers": "true"})
     sim = Simulator(cfg, seed=0)
@@ -75,6 +81,19 @@ def main() -> None:
     dt = time.perf_counter() - t0
     print(f"simulate {steps} steps (30 s at 30 Hz, lidar every step, markers on): {dt:.2f} s = "
           f"{1e3 * dt / steps:.2f} ms per step ({steps * float(sim.config.dt_s) / dt:.1f}x real time)")
+
+    # streaming (record=False), as a long shift would run: resident memory must not grow with the steps
+    live = Simulator(cfg, seed=1, record=False)
+    driver = live.driver()
+    rss = []
+    t0 = time.perf_counter()
+    for i in range(1, 6001):
+        live.step(*driver.command(live.pose, None))
+        if i % 1500 == 0:
+            rss.append(current_rss_mib())
+    dt = time.perf_counter() - t0
+    print(f"streaming 6000 steps (200 s simulated): {1e3 * dt / 6000:.2f} ms per step; RSS after each 1500 "
+          f"steps: {', '.join(f'{r:.0f}' for r in rss)} MiB")
 
     small = simulate("warehouse", seed=0)
     t0 = time.perf_counter()
