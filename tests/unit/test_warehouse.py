@@ -34,6 +34,7 @@ def _cfg(**over):
     ({"road_m": 1.0}, "warehouse.road_m"),
     ({"relocate_fraction": 1.5}, "warehouse.relocate_fraction"),
     ({"flight": -1}, "warehouse.flight"),
+    ({"flight": 1, "pallets": 850, "relocate_fraction": 0.2}, "warehouse.relocate_fraction"),
 ])
 def test_requests_the_layout_cannot_hold_name_the_field(over, field):
     with pytest.raises(ValueError, match=field.replace(".", r"\.")):

@@ -94,6 +94,10 @@ class WarehouseConfig:
         if self.pallets > self.bay_count:
             raise ValueError(f"WarehouseConfig.pallets = {self.pallets} does not fit: the racks have "
                              f"{self.bay_count} bays")
+        moved, empty = round(self.relocate_fraction * self.pallets), self.bay_count - self.pallets
+        if self.flight > 0 and moved > empty:
+            raise ValueError(f"WarehouseConfig.relocate_fraction = {self.relocate_fraction} moves {moved} pallets "
+                             f"between flights, but only {empty} bays are empty")
 
     @property
     def aisle_width_m(self) -> float:
@@ -204,7 +208,7 @@ def pallet_slots(cfg: WarehouseConfig, rng: np.random.Generator) -> NDArray[np.i
     occupied = np.sort(rng.choice(n_slots, size=cfg.pallets, replace=False))
     for f in range(1, cfg.flight + 1):
         r = np.random.default_rng(np.random.SeedSequence([base, f]))
-        n_move = min(round(cfg.relocate_fraction * cfg.pallets), n_slots - cfg.pallets)
+        n_move = round(cfg.relocate_fraction * cfg.pallets)  # validated: never more than the empty bays
         free = np.setdiff1d(np.arange(n_slots), occupied)
         leave = r.choice(occupied, size=n_move, replace=False)
         arrive = r.choice(free, size=n_move, replace=False)
