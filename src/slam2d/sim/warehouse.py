@@ -2,11 +2,11 @@
 
 Plan view (x along the racks, y across them)::
 
-    +--------------------------------------------------------+  perimeter road (road_m wide) all round
+    +----------------------------------------------------------+  perimeter road (road_m wide) all round
     |  [rack block]  cross  [rack block]  cross  [rack block]  |  aisles + 1 rack rows, each cut into
     |  ------------------- aisle centre line ----------------  |  cross_aisles + 1 blocks by cross-aisles
     |  [rack block]  cross  [rack block]  cross  [rack block]  |  (road_m wide)
-    +--------------------------------------------------------+
+    +----------------------------------------------------------+
 
 A rack row is ``rack_depth_m`` deep: a thin back panel on its centre line and a row of uprights (0.1 m square
 posts, one every ``bay_m``) along each face. The bays between uprights hold pallets (1.2 x 1.0 m boxes) on either
