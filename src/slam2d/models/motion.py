@@ -103,6 +103,25 @@ def odometry_covariance(u: ArrayLike, noise: MotionNoise) -> Array:
     return np.einsum("...ij,...j,...kj->...ik", v, var, v)
 
 
+def odometry_factor(u: ArrayLike, noise: MotionNoise, *, floor_var: float = 0.0) -> tuple[Array, Array]:
+    """Measurement and information of the between factor that odometry ``u`` becomes: ``(z, info)``.
+
+    The between factor's error (``graph/factors.py``, g2o EdgeSE2) expresses the translation residual in the frame
+    of the END of the motion: ``e = [R(dtheta)^T (t - [dx, dy]); theta - dtheta]``. So the error covariance is the
+    [dx, dy, dtheta] covariance rotated by ``R(dtheta)^T``; inverting the unrotated covariance would weight the
+    along- and across-track directions wrongly after every turn. ``floor_var`` is added to every diagonal entry of
+    the covariance (isotropic, so rotation leaves it unchanged) to keep a standstill's information finite.
+    Shapes: (...,3) -> (...,3), (...,3,3).
+    """
+    z = np.array(u, dtype=np.float64)
+    cov = odometry_covariance(z, noise)
+    c, s = np.cos(z[..., 2]), np.sin(z[..., 2])
+    one, zero = np.ones_like(c), np.zeros_like(c)
+    r_t = se2.matrix_from_rows([c, s, zero], [-s, c, zero], [zero, zero, one])
+    cov_e = r_t @ cov @ np.swapaxes(r_t, -1, -2) + floor_var * np.eye(3)
+    return z, np.linalg.inv(cov_e)
+
+
 def sample_odometry(u_true: ArrayLike, noise: MotionNoise, rng: np.random.Generator) -> Array:
     """A noisy odometry reading of the true relative motion ``u_true`` (noise applied in rot1-trans-rot2 space)."""
     m = odometry_to_rtr(u_true)

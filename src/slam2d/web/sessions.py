@@ -21,7 +21,7 @@ from slam2d.geometry import se2
 from slam2d.lab.registry import estimator_names, get_spec, make_estimator
 from slam2d.log import Step
 from slam2d.models.lidar import LidarConfig, scan_to_points
-from slam2d.models.motion import MotionNoise, odometry_covariance
+from slam2d.models.motion import MotionNoise, odometry_factor
 from slam2d.models.sensors import SensorConfig, range_bearing_inverse, range_bearing_inverse_jacobians
 from slam2d.sim.scenarios import SCENARIOS, ScenarioConfig
 from slam2d.sim.simulator import Simulator
@@ -1008,15 +1008,8 @@ class GraphSession(Session):
         t = log.num_steps
         noise = self.sim.config.motion
         graph = g.FactorGraph()
-        # odometry: z = pose t+1 in the frame of pose t; its covariance (dx, dy, dth) rotated into the factor's
-        # error frame (the translation error is expressed after rotating by -dth)
-        u = log.odometry
-        cov = odometry_covariance(u, noise)
-        c, s = np.cos(u[:, 2]), np.sin(u[:, 2])
-        j = np.zeros((t, 3, 3))
-        j[:, 0, 0], j[:, 0, 1], j[:, 1, 0], j[:, 1, 1], j[:, 2, 2] = c, s, -s, c, 1.0
-        cov_e = j @ cov @ np.swapaxes(j, 1, 2)
-        graph.add_between(np.arange(t), np.arange(1, t + 1), u, np.linalg.inv(cov_e))
+        # odometry: z = pose t+1 in the frame of pose t, information in the factor's error frame
+        graph.add_between(np.arange(t), np.arange(1, t + 1), *odometry_factor(log.odometry, noise))
         keep = log.obs_id >= 0
         steps, ids = log.obs_step[keep], log.obs_id[keep]
         z = np.column_stack([log.obs_range_m[keep], log.obs_bearing_rad[keep]])
