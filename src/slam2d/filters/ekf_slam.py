@@ -38,6 +38,7 @@ from scipy.linalg import blas
 from slam2d import _jacobians
 from slam2d.association import CLUTTER, NEW, AssociationConfig, AssociationResult, Candidates, associate
 from slam2d.association.gating import gate_thresholds, innovations, mahalanobis_matrix
+from slam2d.association.predict import innovation_covariance, joint_innovation_covariance
 from slam2d.config import check_nonnegative, check_positive
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle
 from slam2d.geometry.angles import wrap_angle
@@ -413,24 +414,10 @@ def predict_landmarks(mu: Array, P: Array, js: ArrayLike, R: Array, *,
     lms = mu[lm_idx].reshape(n_l, 2)
     z_pred = range_bearing(pose, lms).reshape(n_l, 2)
     hp, hl = range_bearing_jacobians(np.broadcast_to(pose, (n_l, POSE_DIM)), lms)
-    prr = P[:POSE_DIM, :POSE_DIM]
-    prl = P[:POSE_DIM, lm_idx].reshape(POSE_DIM, n_l, 2)
-    # per-landmark S: H [[Prr, Prl],[Plr, Pll]] H^T + R with H = [hp, hl]
-    pll_diag = P[lm_idx.reshape(n_l, 2, 1), lm_idx.reshape(n_l, 1, 2)]  # (L,2,2)
-    t_pl = np.einsum("iab,bic,idc->iad", hp, prl, hl)
-    S = (np.einsum("iab,bc,idc->iad", hp, prr, hp) + t_pl + np.swapaxes(t_pl, 1, 2)
-         + np.einsum("iab,ibc,idc->iad", hl, pll_diag, hl) + R)
-    S = 0.5 * (S + np.swapaxes(S, 1, 2))
+    rows = lm_idx.reshape(n_l, 2)
     if not joint:
-        return z_pred, S, None
-    pll = P[np.ix_(lm_idx, lm_idx)].reshape(n_l, 2, n_l, 2)
-    cross = np.einsum("iab,bjc,jdc->iajd", hp, prl, hl)
-    sj = (np.einsum("iab,bc,jdc->iajd", hp, prr, hp) + cross + cross.transpose(2, 3, 0, 1)
-          + np.einsum("iab,ibjc,jdc->iajd", hl, pll, hl))
-    ar = np.arange(n_l)
-    sj[ar, :, ar, :] = S  # diagonal blocks (they carry the measurement noise)
-    sj = sj.reshape(2 * n_l, 2 * n_l)
-    return z_pred, S, 0.5 * (sj + sj.T)
+        return z_pred, innovation_covariance(hp, hl, P, rows, R), None
+    return (z_pred, *joint_innovation_covariance(hp, hl, P, rows, R))
 
 
 def run_association(observations: Observations, candidates: Candidates, config: AssociationConfig,

@@ -119,7 +119,7 @@ def odometry_factor(u: ArrayLike, noise: MotionNoise, *, floor_var: float = 0.0)
     one, zero = np.ones_like(c), np.zeros_like(c)
     r_t = se2.matrix_from_rows([c, s, zero], [-s, c, zero], [zero, zero, one])
     cov_e = r_t @ cov @ np.swapaxes(r_t, -1, -2) + floor_var * np.eye(3)
-    return z, np.linalg.inv(cov_e)
+    return z, np.asarray(np.linalg.inv(cov_e), dtype=np.float64)
 
 
 def sample_odometry(u_true: ArrayLike, noise: MotionNoise, rng: np.random.Generator) -> Array:

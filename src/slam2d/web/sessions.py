@@ -620,19 +620,15 @@ class AssociationSession(Session):
         self._associate_now()
 
     def candidates(self) -> Any:
-        from slam2d.association import Candidates
+        from slam2d.association import Candidates, joint_innovation_covariance
         from slam2d.models.sensors import range_bearing, range_bearing_jacobians
 
         # every landmark within reach of the belief (range plus a margin for the pose error) is a candidate
         zp = range_bearing(self.belief, self.landmarks)
         near = np.flatnonzero(zp[:, 0] <= self.sensor.max_range_m + 3.0)
-        hp, _ = range_bearing_jacobians(np.broadcast_to(self.belief, (len(near), 3)), self.landmarks[near])
-        r = self.sensor.covariance
-        s = hp @ self.pose_cov @ np.swapaxes(hp, -1, -2) + r
-        s = 0.5 * (s + np.swapaxes(s, -1, -2))
-        hstack = hp.reshape(-1, 3)
-        s_joint = hstack @ self.pose_cov @ hstack.T + np.kron(np.eye(len(near)), r)
-        s_joint = 0.5 * (s_joint + s_joint.T)
+        hp, hl = range_bearing_jacobians(np.broadcast_to(self.belief, (len(near), 3)), self.landmarks[near])
+        # the map is known exactly (rows=None): only the pose is uncertain
+        s, s_joint = joint_innovation_covariance(hp, hl, self.pose_cov, None, self.sensor.covariance)
         return Candidates(near.astype(np.int64), zp[near], s, s_joint)
 
     def _associate_now(self) -> None:
