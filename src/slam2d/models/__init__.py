@@ -11,6 +11,7 @@ from slam2d.models.lidar import simulate_scan as simulate_scan
 from slam2d.models.motion import MotionNoise as MotionNoise
 from slam2d.models.motion import VelocityNoise as VelocityNoise
 from slam2d.models.motion import odometry_covariance as odometry_covariance
+from slam2d.models.motion import odometry_factor as odometry_factor
 from slam2d.models.motion import odometry_predict as odometry_predict
 from slam2d.models.motion import odometry_predict_jacobians as odometry_predict_jacobians
 from slam2d.models.motion import odometry_to_rtr as odometry_to_rtr
