@@ -67,6 +67,7 @@ PAIRS: tuple[tuple[str, str, str, tuple[str, ...], tuple[int, ...], dict[str, An
     (_SEN, "bearing_only", "bearing_only_jacobians", ("pose", "point"), (0,), {}),
     (_SEN, "range_only", "range_only_jacobians", ("pose", "point"), (), {}),
     (_SEN, "absolute_position", "absolute_position_jacobians", ("pose",), (), {}),
+    ("slam2d.models.floor_markers", "marker_in_robot", "marker_in_robot_jacobians", ("pose", "point"), (), {}),
     (_FAC, "between_error", "between_error_jacobians", ("pose", "pose"), (2,), {"z": (0.7, -0.3, 2.9)}),
     (_FAC, "prior_error", "prior_error_jacobians", ("pose",), (2,), {"z": (0.1, 0.2, -3.0)}),
     (_FAC, "point_error", "point_error_jacobians", ("pose", "point"), (), {"z": (1.5, -0.5)}),

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from slam2d import _jacobians
 from slam2d.config import check_positive
 
 Array = NDArray[np.float64]
@@ -61,8 +60,6 @@ def marker_in_robot_jacobians(pose: ArrayLike, marker: ArrayLike) -> tuple[Array
     hm[..., 1, 0], hm[..., 1, 1] = -s, c
     return hp, hm
 
-
-_jacobians.register(marker_in_robot, marker_in_robot_jacobians, ("pose", "point"))
 
 
 def sense_floor_markers(pose: ArrayLike, markers: ArrayLike, config: FloorCameraConfig,
