@@ -59,8 +59,8 @@ def test_warehouse_aisles_create_no_false_loops():
 
 def test_loop_candidate_against_a_forgotten_keyframe_is_skipped():
     log, est, _ = _run("room", 2, sim={"steps": 120})
-    for key in list(est.keyframes):
-        del est.keyframes[key]  # the database still proposes them; verification must skip cleanly
+    for key in list(est.loops.keyframes):
+        del est.loops.keyframes[key]  # the database still proposes them; verification must skip cleanly
     n_before = est.estimate().diagnostics.loops_accepted + est.estimate().diagnostics.loops_rejected
     assert est.close_loop_now(log.observations_at(120).z) is False
     d = est.estimate().diagnostics

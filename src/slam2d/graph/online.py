@@ -31,13 +31,8 @@ import slam2d.association as association
 from slam2d.association import CLUTTER, NEW, AssociationConfig, Candidates, candidates_from_belief
 from slam2d.config import check_nonnegative, check_positive
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, GraphView, LoopEvent
-from slam2d.frontend.place_recognition import (
-    KeyframeDatabase,
-    PlaceRecognitionConfig,
-    loop_gate,
-    observation_points,
-    verify_loop,
-)
+from slam2d.frontend.loop_closure import LoopCloser
+from slam2d.frontend.place_recognition import PlaceRecognitionConfig, observation_points
 from slam2d.geometry import se2
 from slam2d.geometry.angles import angle_diff
 from slam2d.graph.factors import between_error_jacobians
@@ -160,8 +155,7 @@ class GraphSLAM(EstimatorLifecycle):
         self.held_key = np.zeros(0, dtype=np.int64)
         self.held_z = np.zeros((0, 2))
         self.tentative_dropped = 0
-        self.db = KeyframeDatabase(cfg.place)
-        self.keyframes: dict[int, tuple[Array, Array]] = {}
+        self.loops = LoopCloser(cfg.place, cfg.loop_gate_probability, rng)  # its keyframes are map state
         self.new_loops: list[LoopEvent] = []  # decisions of the current step (history is the runner's)
         self.loops_accepted = 0
         self.loops_rejected = 0
@@ -565,37 +559,23 @@ class GraphSLAM(EstimatorLifecycle):
         return np.asarray(assoc_fn(obs, cands, cfg.association, rng=self.rng).assignment, dtype=np.int64)
 
     def _remember_keyframe(self, t: int, z: Array) -> None:
-        pts, covs = observation_points(z, self.config.sensor.covariance)
-        if self.db.add(t, pts):
-            self.keyframes[t] = (pts, covs)
+        self.loops.add_keyframe(t, *observation_points(z, self.config.sensor.covariance))
 
     def _detect_loop(self, t: int, z: Array, add_keyframe: bool = True) -> bool:
+        """Try to close a loop at pose ``t``; an accepted one enters the graph as a robust between factor."""
         cfg = self.config
         pts, covs = observation_points(z, cfg.sensor.covariance)
-        hits = self.db.query(pts, t)
-        accepted = False
-        for a, _ in hits:
-            if a not in self.keyframes:  # the keyframe was dropped: nothing to verify against
-                continue
-            pa, ca = self.keyframes[a]
-            hyp = verify_loop(pa, ca, pts, covs, cfg.place, self.rng)
-            if hyp is None:
-                continue
-            pose_a = self.values.poses[np.searchsorted(self.values.pose_keys, a)]
-            t_pred = se2.between(pose_a, self.values.poses[-1])
-            joint = self._marginals([a, t])
-            ja, jb = se2.between_jacobians(pose_a, self.values.poses[-1])
-            j = np.hstack([ja, jb])
-            ok, d2 = loop_gate(hyp.T_a_b, hyp.cov, t_pred, j @ joint @ j.T, cfg.loop_gate_probability)
-            self.new_loops.append(LoopEvent(a, t, ok, hyp.T_a_b))
-            self.loops_rejected += not ok
-            if ok:
-                self.loops_accepted += 1
-                info = np.linalg.inv(hyp.cov) * cfg.loop_info_scale
+        found = self.loops.try_close(t, pts, covs, self._pose_of, lambda a, b: self._marginals([a, b]),
+                                     add_keyframe=add_keyframe)
+        for c in found:
+            self.new_loops.append(c.event)
+            self.loops_accepted += c.accepted
+            self.loops_rejected += not c.accepted
+            if c.accepted:
+                info = np.linalg.inv(c.cov) * cfg.loop_info_scale
                 kernel = None if cfg.loop_robust_kernel == "none" else cfg.loop_robust_kernel
-                self.graph.add_between([a], [t], hyp.T_a_b[None], info[None], robust=kernel)
-                accepted = True
-                break
-        if add_keyframe and self.db.add(t, pts):
-            self.keyframes[t] = (pts, covs)
-        return accepted
+                self.graph.add_between([c.a], [t], c.T_a_b[None], info[None], robust=kernel)
+        return any(c.accepted for c in found)
+
+    def _pose_of(self, key: int) -> Array:
+        return self.values.poses[np.searchsorted(self.values.pose_keys, key)]
