@@ -3,10 +3,14 @@
 Every step adds the new pose (initialised from odometry), an odometry factor and the step's range-bearing factors
 (through the association module); every ``optimize_every`` steps, and whenever a loop closure is accepted, the
 whole graph is re-optimised from the current estimate (warm start) by a reused :class:`~slam2d.graph.optimizer.
-Optimizer`, whose symbolic analysis is redone only when the structure has grown. Loop closures come from place
-recognition over keyframes (landmark-constellation descriptors), geometric verification (RANSAC with an honest
-covariance), and a chi-square gate against the current estimate and its marginal covariance; accepted loop factors
-also carry a robust kernel so that a wrong one that slipped through is down-weighted.
+Optimizer`, whose symbolic analysis is redone only when the structure has grown. Loop closures come from a
+:class:`~slam2d.frontend.loop_closure.LoopCloser`: place recognition over keyframes (landmark-constellation
+descriptors), geometric verification (RANSAC with an honest covariance), and a chi-square gate against the current
+estimate and its joint marginal covariance; accepted loop factors also carry a robust kernel so that a wrong one that
+slipped through is down-weighted.
+
+State (all of it created in ``reset``): the graph and its values grow by one pose per step (full smoothing); the
+keyframes, ``last_seen`` and ``alias`` grow per keyframe / landmark (map state); nothing keeps per-step history.
 
 With ``loop_closure`` off the robot also forgets landmarks it has not seen for ``revisit_gap_steps``: a re-sighting
 after such a gap starts a new landmark, exactly as if the place were not recognised.
@@ -166,7 +170,7 @@ class GraphSLAM(EstimatorLifecycle):
     @property
     def pose_cov(self) -> Array:
         """Marginal covariance of the newest pose (3x3): last optimisation + odometry since."""
-        return self.belief.pose_cov
+        return self.belief.pose_cov.copy()
 
     def step(self, step: Step) -> None:
         self._check_step()
