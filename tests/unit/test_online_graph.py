@@ -59,8 +59,8 @@ def test_warehouse_aisles_create_no_false_loops():
 
 def test_loop_candidate_against_a_forgotten_keyframe_is_skipped():
     log, est, _ = _run("room", 2, sim={"steps": 120})
-    for key in list(est.keyframes):
-        del est.keyframes[key]  # the database still proposes them; verification must skip cleanly
+    for key in list(est.loops.keyframes):
+        del est.loops.keyframes[key]  # the database still proposes them; verification must skip cleanly
     n_before = est.estimate().diagnostics.loops_accepted + est.estimate().diagnostics.loops_rejected
     assert est.close_loop_now(log.observations_at(120).z) is False
     d = est.estimate().diagnostics
@@ -125,3 +125,38 @@ def test_association_gates_with_the_joint_innovation_covariance(monkeypatch):
     assert len(checked) >= 6 and sum(c[1] for c in checked if c[0] % 20 == 1) >= 3
     # six steps later the block has been through local (EKF) updates, linearised where the graph was not: close
     assert max(c[2] for c in checked) < 0.1
+
+
+def _factors_up_to(graph, t_opt):
+    """The factors an optimisation at step ``t_opt`` saw, plus the odometry factors added since (a new graph)."""
+    from slam2d.graph.graph import FactorGraph
+
+    out = FactorGraph()
+    for b in graph.blocks():
+        pose_key = b.keys[1] if b.kind == "between" else b.keys[0]
+        keep = (pose_key <= t_opt) | ((b.kind == "between") & (b.keys[1] == b.keys[0] + 1))
+        args = [k[keep] for k in b.keys]
+        getattr(out, f"add_{b.kind}")(*args, b.z[keep], b.information[keep])
+    return out
+
+
+def test_pose_cov_is_the_marginal_of_the_last_factorisation_plus_odometry_since():
+    """Known association, optimised every 10 steps: right after the optimisation at step 30 pose_cov is the newest
+    pose's block of the dense inverse information matrix; four steps later it is that of the graph the optimisation
+    saw extended by the four odometry factors (the landmark factors of steps 31-34 are not in it yet), both
+    linearised at the current values."""
+    log = slam2d.simulate("room", seed=3, steps=34)
+    est = GraphSLAM(make_config("graph", {"optimize_every": 10, "loop_closure": "false"}, log.metadata))
+    est.reset(log.initial_pose, rng=np.random.default_rng(0))
+    for step in log:
+        est.step(step)
+        t = step.index
+        if t in (30, 34):
+            cov, an = _dense_covariance(_factors_up_to(est.graph, 30), est.values)
+            cols, _ = an.variable_slices([t])
+            np.testing.assert_allclose(est.pose_cov, cov[np.ix_(cols, cols)], rtol=1e-7, atol=1e-12)
+            if t == 34:
+                full, an_full = _dense_covariance(est.graph, est.values)
+                cols_full, _ = an_full.variable_slices([t])
+                # the landmark sightings since would shrink it: pose_cov is the conservative one
+                assert np.linalg.det(full[np.ix_(cols_full, cols_full)]) < np.linalg.det(est.pose_cov)

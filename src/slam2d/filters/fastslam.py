@@ -127,6 +127,8 @@ class FastSLAMConfig:
     those nearest (Euclidean, world frame) to where the particle places the observation."""
     motion: MotionNoise = field(default_factory=MotionNoise)
     """odometry noise assumed by the filter (filled from the log's metadata by the registry)."""
+    motion_noise_scale: float = 1.0
+    """multiplies every motion-noise variance the filter assumes (< 1: an overconfident filter)."""
     sensor: SensorConfig = field(default_factory=SensorConfig)
     """range-bearing sensor assumed by the filter (filled from the log's metadata by the registry)."""
     association: AssociationConfig = field(default_factory=AssociationConfig)
@@ -138,7 +140,7 @@ class FastSLAMConfig:
         if self.version not in (1, 2):
             raise ValueError(f"{type(self).__name__}.version must be 1 or 2 (got {self.version!r})")
         check_probability(self, "resample_threshold")
-        check_positive(self, "new_landmark_likelihood", "candidate_margin_m")
+        check_positive(self, "new_landmark_likelihood", "candidate_margin_m", "motion_noise_scale")
         if not isinstance(self.association_candidates, int) or self.association_candidates < 1:
             raise ValueError(f"{type(self).__name__}.association_candidates must be an integer >= 1 "
                              f"(got {self.association_candidates!r})")
@@ -608,11 +610,12 @@ class FastSLAM(EstimatorLifecycle):
         log_p0 = math.log(cfg.new_landmark_likelihood)
         assoc_slots = np.full((len(obs), m), -1, dtype=np.int64)
 
+        noise = cfg.motion if cfg.motion_noise_scale == 1.0 else cfg.motion.scaled(cfg.motion_noise_scale)
         if cfg.version == 1:
-            poses = sample_motion(p.poses, u, cfg.motion, self._rng)
+            poses = sample_motion(p.poses, u, noise, self._rng)
             pose_cov = None
         else:
-            poses, pose_cov = motion_gaussian(p.poses, u, cfg.motion)
+            poses, pose_cov = motion_gaussian(p.poses, u, noise)
 
         cand = np.zeros((m, 0), dtype=np.int64)
         valid = np.zeros((m, 0), dtype=bool)

@@ -11,7 +11,8 @@ optimiser can tell whether its symbolic analysis is still valid.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -38,10 +39,24 @@ def _keys(a: ArrayLike, n: int | None, what: str) -> IntArray:
     return k.astype(np.int64)
 
 
+def _check_values(name: str, k: IntArray, v: Array, existing: IntArray) -> None:
+    """GraphError unless keys ``k`` match values ``v`` in number, are unique (also against ``existing``) and the
+    values are finite."""
+    if k.size != v.shape[0]:
+        raise GraphError(f"Values: {k.size} {name} keys but {v.shape[0]} {name} values")
+    if np.unique(k).size != k.size or np.any(np.isin(k, existing)):
+        raise GraphError(f"Values: duplicate {name} keys")
+    if not np.all(np.isfinite(v)):
+        bad = k[~np.all(np.isfinite(v), axis=1)][0]
+        raise GraphError(f"Values: {name} {bad} has a non-finite value")
+
+
 @dataclass
 class Values:
     """Variable estimates: poses ``(P, 3)`` with keys ``(P,)`` and points ``(L, 2)`` with keys ``(L,)``.
 
+    A Values owns its arrays: the constructor copies what it is given, so writing into ``values.poses`` never
+    reaches the caller's arrays (and the caller's later writes never reach the Values).
     Shapes: pose_keys (P,), poses (P, 3), point_keys (L,), points (L, 2).
     """
 
@@ -51,37 +66,29 @@ class Values:
     points: Array = field(default_factory=lambda: np.zeros((0, 2)))
 
     def __post_init__(self) -> None:
-        self.pose_keys = _keys(self.pose_keys, None, "Values.pose_keys")
+        self.pose_keys = _keys(self.pose_keys, None, "Values.pose_keys")  # astype: always a copy
         self.point_keys = _keys(self.point_keys, None, "Values.point_keys")
-        self.poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 3)
-        self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 2)
-        for name, k, v in (("pose", self.pose_keys, self.poses), ("point", self.point_keys, self.points)):
-            if k.size != v.shape[0]:
-                raise GraphError(f"Values: {k.size} {name} keys but {v.shape[0]} {name} values")
-            if np.unique(k).size != k.size:
-                raise GraphError(f"Values: duplicate {name} keys")
-            if not np.all(np.isfinite(v)):
-                bad = k[~np.all(np.isfinite(v), axis=1)][0]
-                raise GraphError(f"Values: {name} {bad} has a non-finite value")
+        self.poses = np.array(self.poses, dtype=np.float64).reshape(-1, 3)
+        self.points = np.array(self.points, dtype=np.float64).reshape(-1, 2)
+        _check_values("pose", self.pose_keys, self.poses, np.zeros(0, np.int64))
+        _check_values("point", self.point_keys, self.points, np.zeros(0, np.int64))
 
     def copy(self) -> Values:
-        return Values(self.pose_keys.copy(), self.poses.copy(), self.point_keys.copy(), self.points.copy())
+        return Values(self.pose_keys, self.poses, self.point_keys, self.points)
 
     def add_poses(self, keys: ArrayLike, poses: ArrayLike) -> None:
         """Append poses (keys must be new)."""
         k = _keys(keys, None, "add_poses")
         v = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-        merged = Values(np.concatenate([self.pose_keys, k]), np.concatenate([self.poses, v]),
-                        self.point_keys, self.points)
-        self.pose_keys, self.poses = merged.pose_keys, merged.poses
+        _check_values("pose", k, v, self.pose_keys)
+        self.pose_keys, self.poses = np.concatenate([self.pose_keys, k]), np.concatenate([self.poses, v])
 
     def add_points(self, keys: ArrayLike, points: ArrayLike) -> None:
         """Append points (keys must be new)."""
         k = _keys(keys, None, "add_points")
         v = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-        merged = Values(self.pose_keys, self.poses, np.concatenate([self.point_keys, k]),
-                        np.concatenate([self.points, v]))
-        self.point_keys, self.points = merged.point_keys, merged.points
+        _check_values("point", k, v, self.point_keys)
+        self.point_keys, self.points = np.concatenate([self.point_keys, k]), np.concatenate([self.points, v])
 
     def pose(self, key: int) -> Array:
         """The pose with this key (raises KeyError)."""
@@ -266,6 +273,22 @@ class FactorGraph:
             b = self.block(k)
             b.kernel[:] = code
             b.kernel_param[:] = param
+
+    def with_robust(self, kinds: Sequence[str], kernel: str | None, param: float = 1.0) -> FactorGraph:
+        """A graph with the same factors whose factors of ``kinds`` (every type when empty) carry ``kernel``; this
+        graph is left unchanged. Measurements and information matrices are shared with this graph (treat them as
+        read-only), kernel arrays of the selected types are new; ``structure_version`` is the same."""
+        code = kernel_code(kernel)
+        if kernel is not None and not (param > 0 and np.isfinite(param)):
+            raise GraphError(f"with_robust: param must be > 0 (got {param})")
+        out = FactorGraph()
+        for k in self.kinds():
+            b = self.block(k)
+            if not kinds or k in kinds:
+                b = replace(b, kernel=np.full(b.size, code, np.int8), kernel_param=np.full(b.size, float(param)))
+            out._parts[k] = [b]
+        out.structure_version = self.structure_version
+        return out
 
     def pose_keys_used(self) -> IntArray:
         out = [b.keys[i] for b in self.blocks() for i, vk in enumerate(KINDS[b.kind].var_kinds) if vk == "pose"]

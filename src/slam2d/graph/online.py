@@ -3,10 +3,14 @@
 Every step adds the new pose (initialised from odometry), an odometry factor and the step's range-bearing factors
 (through the association module); every ``optimize_every`` steps, and whenever a loop closure is accepted, the
 whole graph is re-optimised from the current estimate (warm start) by a reused :class:`~slam2d.graph.optimizer.
-Optimizer`, whose symbolic analysis is redone only when the structure has grown. Loop closures come from place
-recognition over keyframes (landmark-constellation descriptors), geometric verification (RANSAC with an honest
-covariance), and a chi-square gate against the current estimate and its marginal covariance; accepted loop factors
-also carry a robust kernel so that a wrong one that slipped through is down-weighted.
+Optimizer`, whose symbolic analysis is redone only when the structure has grown. Loop closures come from a
+:class:`~slam2d.frontend.loop_closure.LoopCloser`: place recognition over keyframes (landmark-constellation
+descriptors), geometric verification (RANSAC with an honest covariance), and a chi-square gate against the current
+estimate and its joint marginal covariance; accepted loop factors also carry a robust kernel so that a wrong one that
+slipped through is down-weighted.
+
+State (all of it created in ``reset``): the graph and its values grow by one pose per step (full smoothing); the
+keyframes, ``last_seen`` and ``alias`` grow per keyframe / landmark (map state); nothing keeps per-step history.
 
 With ``loop_closure`` off the robot also forgets landmarks it has not seen for ``revisit_gap_steps``: a re-sighting
 after such a gap starts a new landmark, exactly as if the place were not recognised.
@@ -31,13 +35,8 @@ import slam2d.association as association
 from slam2d.association import CLUTTER, NEW, AssociationConfig, Candidates, candidates_from_belief
 from slam2d.config import check_nonnegative, check_positive
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, GraphView, LoopEvent
-from slam2d.frontend.place_recognition import (
-    KeyframeDatabase,
-    PlaceRecognitionConfig,
-    loop_gate,
-    observation_points,
-    verify_loop,
-)
+from slam2d.frontend.loop_closure import LoopCloser
+from slam2d.frontend.place_recognition import PlaceRecognitionConfig, observation_points
 from slam2d.geometry import se2
 from slam2d.geometry.angles import angle_diff
 from slam2d.graph.factors import between_error_jacobians
@@ -160,8 +159,7 @@ class GraphSLAM(EstimatorLifecycle):
         self.held_key = np.zeros(0, dtype=np.int64)
         self.held_z = np.zeros((0, 2))
         self.tentative_dropped = 0
-        self.db = KeyframeDatabase(cfg.place)
-        self.keyframes: dict[int, tuple[Array, Array]] = {}
+        self.loops = LoopCloser(cfg.place, cfg.loop_gate_probability, rng)  # its keyframes are map state
         self.new_loops: list[LoopEvent] = []  # decisions of the current step (history is the runner's)
         self.loops_accepted = 0
         self.loops_rejected = 0
@@ -172,7 +170,7 @@ class GraphSLAM(EstimatorLifecycle):
     @property
     def pose_cov(self) -> Array:
         """Marginal covariance of the newest pose (3x3): last optimisation + odometry since."""
-        return self.belief.pose_cov
+        return self.belief.pose_cov.copy()
 
     def step(self, step: Step) -> None:
         self._check_step()
@@ -565,37 +563,23 @@ class GraphSLAM(EstimatorLifecycle):
         return np.asarray(assoc_fn(obs, cands, cfg.association, rng=self.rng).assignment, dtype=np.int64)
 
     def _remember_keyframe(self, t: int, z: Array) -> None:
-        pts, covs = observation_points(z, self.config.sensor.covariance)
-        if self.db.add(t, pts):
-            self.keyframes[t] = (pts, covs)
+        self.loops.add_keyframe(t, *observation_points(z, self.config.sensor.covariance))
 
     def _detect_loop(self, t: int, z: Array, add_keyframe: bool = True) -> bool:
+        """Try to close a loop at pose ``t``; an accepted one enters the graph as a robust between factor."""
         cfg = self.config
         pts, covs = observation_points(z, cfg.sensor.covariance)
-        hits = self.db.query(pts, t)
-        accepted = False
-        for a, _ in hits:
-            if a not in self.keyframes:  # the keyframe was dropped: nothing to verify against
-                continue
-            pa, ca = self.keyframes[a]
-            hyp = verify_loop(pa, ca, pts, covs, cfg.place, self.rng)
-            if hyp is None:
-                continue
-            pose_a = self.values.poses[np.searchsorted(self.values.pose_keys, a)]
-            t_pred = se2.between(pose_a, self.values.poses[-1])
-            joint = self._marginals([a, t])
-            ja, jb = se2.between_jacobians(pose_a, self.values.poses[-1])
-            j = np.hstack([ja, jb])
-            ok, d2 = loop_gate(hyp.T_a_b, hyp.cov, t_pred, j @ joint @ j.T, cfg.loop_gate_probability)
-            self.new_loops.append(LoopEvent(a, t, ok, hyp.T_a_b))
-            self.loops_rejected += not ok
-            if ok:
-                self.loops_accepted += 1
-                info = np.linalg.inv(hyp.cov) * cfg.loop_info_scale
+        found = self.loops.try_close(t, pts, covs, self._pose_of, lambda a, b: self._marginals([a, b]),
+                                     add_keyframe=add_keyframe)
+        for c in found:
+            self.new_loops.append(c.event)
+            self.loops_accepted += c.accepted
+            self.loops_rejected += not c.accepted
+            if c.accepted:
+                info = np.linalg.inv(c.cov) * cfg.loop_info_scale
                 kernel = None if cfg.loop_robust_kernel == "none" else cfg.loop_robust_kernel
-                self.graph.add_between([a], [t], hyp.T_a_b[None], info[None], robust=kernel)
-                accepted = True
-                break
-        if add_keyframe and self.db.add(t, pts):
-            self.keyframes[t] = (pts, covs)
-        return accepted
+                self.graph.add_between([c.a], [t], c.T_a_b[None], info[None], robust=kernel)
+        return any(c.accepted for c in found)
+
+    def _pose_of(self, key: int) -> Array:
+        return self.values.poses[np.searchsorted(self.values.pose_keys, key)]

@@ -144,18 +144,32 @@ class Optimizer:
         self.analysis: Analysis | None = None
         self.solver: LinearSolver | None = None
         self.analyses_done = 0
+        # the graph the analysis was built on: the caller's, or a private copy carrying the config's kernel override
+        self._working: FactorGraph = graph
+        self._analysed: FactorGraph = graph
+        self._working_key: tuple[object, ...] = ()
+
+    def _working_graph(self) -> FactorGraph:
+        """The caller's graph, or (``robust_kernel`` set) a private view of it with the override applied: the
+        caller's per-factor kernels are never rewritten."""
+        cfg = self.config
+        if cfg.robust_kernel is None:
+            return self.graph
+        key = (self.graph.structure_version, cfg.robust_kernel, cfg.robust_param, cfg.robust_kinds)
+        if self._working is self.graph or self._working_key != key:
+            self._working = self.graph.with_robust(cfg.robust_kinds, cfg.robust_kernel, cfg.robust_param)
+            self._working_key = key
+        return self._working
 
     def _prepare(self, values: Values) -> float:
         t0 = time.perf_counter()
         cfg = self.config
-        if cfg.robust_kernel is not None:
-            for k in (cfg.robust_kinds or tuple(self.graph.kinds())):
-                if k in self.graph.kinds():
-                    self.graph.set_robust(k, cfg.robust_kernel, cfg.robust_param)
-        if self.analysis is None or not self.analysis.compatible(self.graph, values):
-            self.analysis = Analysis(self.graph, values, fixed_pose_keys=self.fixed_pose_keys, gauge=cfg.gauge)
+        graph = self._working_graph()
+        if self.analysis is None or graph is not self._analysed or not self.analysis.compatible(graph, values):
+            self.analysis = Analysis(graph, values, fixed_pose_keys=self.fixed_pose_keys, gauge=cfg.gauge)
             self.solver = make_solver(cfg.linear_solver)
             self.analyses_done += 1
+            self._analysed = graph
         return time.perf_counter() - t0
 
     def optimize(self, values: Values) -> tuple[Values, Summary]:
@@ -308,7 +322,7 @@ class Optimizer:
             if cost <= cfg.absolute_decrease_tol:
                 termination = "zero cost"
                 break
-        out = Values(values.pose_keys.copy(), poses, values.point_keys.copy(), points)
+        out = Values(values.pose_keys, poses, values.point_keys, points)  # Values copies what it is given
         summary = Summary(
             chi2_initial=chi20, chi2_final=chi2v, cost_initial=cost0, cost_final=cost, iterations=it,
             linear_solves=solves, rejected_steps=rejected, termination=termination,
