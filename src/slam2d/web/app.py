@@ -24,7 +24,8 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
-from slam2d.web.backends import status
+from slam2d.association import METHODS
+from slam2d.lab.registry import estimator_names
 from slam2d.web.frames import TAGS, encode_frame
 from slam2d.web.pages import PAGE_BY_SLUG, PAGES
 from slam2d.web.params import CommandError
@@ -160,8 +161,8 @@ def create_app() -> FastAPI:
 
     @app.get("/api/status")
     async def api_status() -> JSONResponse:
-        return JSONResponse({**status(), "pages": [{"slug": p.slug, "number": p.number, "title": p.title,
-                                                     "summary": p.summary} for p in PAGES],
+        pages = [{"slug": p.slug, "number": p.number, "title": p.title, "summary": p.summary} for p in PAGES]
+        return JSONResponse({"estimators": estimator_names(), "association_methods": list(METHODS), "pages": pages,
                              "frame_tags": {k: list(v) for k, v in TAGS.items()}})
 
     @app.get("/lab/{slug}")

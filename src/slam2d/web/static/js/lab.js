@@ -17,6 +17,7 @@ const errorsEl = document.getElementById('errors');
 const lab = {
   page, frames: 0, bytes: 0, drawn: 0, fps: 0, recvFps: 0, seq: -1, decodeMs: 0, drawMs: 0,
   pose: null, estPose: null, counters: {}, values: {}, notices: [], errors: [], hello: null, connected: false,
+  rows: [], inactive: [],
   sections: {},
   send: (obj) => send(obj),
 };
@@ -39,12 +40,20 @@ function fmt(v) {
   return Math.abs(v) >= 100 ? v.toFixed(1) : v.toFixed(3);
 }
 
-function buildNumbers(names) {
+function buildNumbers(names, labels) {
   numbersEl.innerHTML = '';
   for (const n of names) {
     const row = document.createElement('div');
     row.className = 'num';
-    row.innerHTML = `<span class="k">${n.replaceAll('_', ' ')}</span><span class="v" data-num="${n}">–</span>`;
+    row.dataset.row = n;
+    const k = document.createElement('span');
+    k.className = 'k';
+    k.textContent = (labels && labels[n]) || n;
+    const v = document.createElement('span');
+    v.className = 'v';
+    v.dataset.num = n;
+    v.textContent = '–';
+    row.append(k, v);
     numbersEl.appendChild(row);
   }
 }
@@ -118,6 +127,16 @@ function applyState(msg) {
     noticesEl.appendChild(d);
   }
   if (msg.bounds) view.setBounds(msg.bounds);
+  // only the rows that apply to the current settings are shown
+  const rows = new Set(msg.rows || scalarNames);
+  lab.rows = Array.from(rows);
+  for (const el of numbersEl.querySelectorAll('[data-row]')) el.hidden = !rows.has(el.dataset.row);
+  // controls that change nothing under the current settings are greyed out
+  lab.inactive = msg.inactive || [];
+  for (const name of Object.keys(paramsByName)) {
+    const input = document.getElementById(`ctl-${name}`);
+    if (input) input.disabled = lab.inactive.includes(name);
+  }
 }
 
 function onText(text) {
@@ -125,7 +144,7 @@ function onText(text) {
   if (msg.type === 'hello') {
     lab.hello = msg;
     scalarNames = msg.scalars || [];
-    buildNumbers(scalarNames);
+    buildNumbers(scalarNames, msg.labels);
     buildControls(msg.params || [], msg.actions || []);
     applyState(msg);
   } else if (msg.type === 'state') {
