@@ -30,7 +30,12 @@ ASSOCIATION_LABELS = {
     "precision": "precision (correct / matched)",
     "recall": "recall (correct / matchable)",
     "joint_nis": "joint NIS of the matches",
+    "search_nodes": "search nodes visited",
+    "truncated": "stopped at the time budget (1 = yes)",
 }
+
+#: wall time one association may take; JCBB then returns its best hypothesis so far, flagged truncated
+TIME_BUDGET_S = 1.0
 
 
 class AssociationSession(Session):
@@ -43,7 +48,7 @@ class AssociationSession(Session):
 
     page = "association"
     title = "data association"
-    scalars = ("observations", "matched", "correct", "wrong", "new_or_clutter", "precision", "recall", "joint_nis")
+    scalars = tuple(ASSOCIATION_LABELS)
     labels = ASSOCIATION_LABELS
 
     def __init__(self, seed: int = 0) -> None:
@@ -102,13 +107,25 @@ class AssociationSession(Session):
         cands = self.candidates()
         method = str(self.values["method"])
         self.notices = [n for n in self.notices if not n.startswith("association method")]
+        cfg = AssociationConfig(method=method, jcbb_time_budget_s=TIME_BUDGET_S)  # type: ignore[arg-type]
         try:
-            res = associate(self.obs, cands, AssociationConfig(method=method), rng=self.rng)  # type: ignore[arg-type]
+            res = associate(self.obs, cands, cfg, rng=self.rng)
         except Exception as e:  # show the failure on the page instead of losing the session
             self.notices.append(f"association method {method!r} failed: {type(e).__name__}: {e}")
             res = AssociationResult(np.full(len(self.obs), CLUTTER, dtype=np.int64), np.full(len(self.obs), np.nan))
+        if res.truncated:
+            self.notices.append(f"association method {method!r} stopped at its {TIME_BUDGET_S:g} s time budget after "
+                                f"{res.nodes} search nodes: the matches shown are the best found so far, not proven "
+                                "the best.")
         self.result = res
         self.cands = cands
+
+    def rows(self) -> list[str]:
+        method = self.values["method"]
+        skip = set() if method == "jcbb" else {"truncated"}
+        if method not in ("jcbb", "ransac"):
+            skip.add("search_nodes")
+        return [s for s in self.scalars if s not in skip]
 
     def numbers(self) -> dict[str, float]:
         a = np.asarray(self.result.assignment)
@@ -121,7 +138,8 @@ class AssociationSession(Session):
                 "wrong": float(n_match - int(correct.sum())), "new_or_clutter": float((~matched).sum()),
                 "precision": float(correct.sum() / n_match) if n_match else float("nan"),
                 "recall": float(correct.sum() / reachable.sum()) if reachable.any() else float("nan"),
-                "joint_nis": float(self.result.joint_nis)}
+                "joint_nis": float(self.result.joint_nis), "search_nodes": float(self.result.nodes),
+                "truncated": float(self.result.truncated)}
 
     def sections(self) -> Sections:
         nums = self.numbers()
