@@ -217,3 +217,22 @@ def test_graph_optimize_button_runs_gauss_newton(page: Any, lab_server: str, art
     assert c["ate_now_m"] < c["ate_initial_m"]
     page.screenshot(path=str(artifacts / "graph-optimized.png"))
     assert errors == []
+
+
+def test_simulator_arrow_into_a_wall_stops_the_robot(page: Any, lab_server: str) -> None:
+    errors = open_page(page, f"{lab_server}/lab/simulator?hz=30&seed=3")
+    page.wait_for_function(FRAMES, timeout=15_000)
+    set_control(page, "steps_per_s", 60)
+    page.wait_for_function("window.slamLab.values.steps_per_s === 60", timeout=5000)
+    page.locator("#world").click()
+    page.keyboard.down("ArrowUp")  # the robot starts at (3, 3) facing east; the east wall is at x = 20
+    try:
+        page.wait_for_function("window.slamLab.pose[0] > 19.5", timeout=20_000)
+        page.wait_for_timeout(500)
+        p1 = page.evaluate("window.slamLab.pose")
+        page.wait_for_timeout(500)
+        p2 = page.evaluate("window.slamLab.pose")
+    finally:
+        page.keyboard.up("ArrowUp")
+    assert p1 == p2 and p1[0] <= 20.0 - 0.3 + 1e-3  # still holding the key, and the robot does not move on
+    assert errors == []

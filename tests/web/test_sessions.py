@@ -344,3 +344,18 @@ def test_no_soft_imports_or_excuses_in_the_web_package() -> None:
             assert banned not in text, f"{path.relative_to(root)} contains {banned!r}"
         if path.suffix == ".py":
             assert len(text.splitlines()) < 600, f"{path.relative_to(root)} is over 600 lines"
+
+
+def test_holding_an_arrow_into_a_wall_stops_the_robot_on_every_world() -> None:
+    for scenario in ("room", "grid"):  # a walled world, and an open one fenced by its bounds
+        s = PAGE_BY_SLUG["simulator"].make(0)
+        s.apply({"type": "param", "name": "scenario", "value": scenario})
+        s.apply({"type": "param", "name": "paused", "value": True})
+        s.apply({"type": "key", "key": "ArrowUp", "down": True})
+        xs = []
+        for _ in range(600):
+            s.apply({"type": "action", "name": "step"})
+            xs.append(float(s.sim.pose[0]))
+        x0, y0, x1, y1 = s.sim.world.bounds
+        assert xs[-1] == xs[-100] and x0 <= min(xs) and max(xs) <= x1, scenario  # stopped, inside the world
+        assert s.sim.collisions >= 100

@@ -56,6 +56,11 @@ class World:
             return self.walls
         return np.vstack([self.walls, *[m.segments(time_s) for m in self.moving]])
 
+    def solid_segments(self, time_s: float) -> Array:
+        """What the robot cannot drive through at ``time_s``: walls, moving objects and the edge of ``bounds``
+        (worlds without walls are fenced by their bounds, so no robot ever leaves the world)."""
+        return np.vstack([self.segments_at(time_s), box_walls(*self.bounds)])
+
     def moving_positions(self, time_s: float) -> Array:
         """(M,2) centres of the moving objects."""
         return np.array([m.position(time_s) for m in self.moving]).reshape(-1, 2)

@@ -226,7 +226,7 @@ class SimSession(Session):
     # --- simulation ---------------------------------------------------------------------------------------------
     def command(self) -> tuple[float, float]:
         drive = self.values["drive"]
-        segs = self.sim.world.segments_at(self.sim.time_s)
+        segs = self.sim.world.solid_segments(self.sim.time_s)
         if drive == "explore":
             return self.explorer.command(self.sim.pose, segs)
         if drive == "route":
