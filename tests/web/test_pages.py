@@ -236,3 +236,81 @@ def test_simulator_arrow_into_a_wall_stops_the_robot(page: Any, lab_server: str)
         page.keyboard.up("ArrowUp")
     assert p1 == p2 and p1[0] <= 20.0 - 0.3 + 1e-3  # still holding the key, and the robot does not move on
     assert errors == []
+
+
+# purple particle squares (COLORS.particle over white) in a canvas: the bounding box of their pixels
+PURPLE_BOX = """(id) => {
+  const c = document.getElementById(id), d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+  let x0 = 1e9, x1 = -1, y0 = 1e9, y1 = -1;
+  for (let i = 0; i < d.length; i += 4) {
+    const r = d[i], g = d[i + 1], b = d[i + 2];
+    if (b - g > 40 && r - g > 20) {
+      const p = i / 4, x = p % c.width, y = Math.floor(p / c.width);
+      x0 = Math.min(x0, x); x1 = Math.max(x1, x); y0 = Math.min(y0, y); y1 = Math.max(y1, y);
+    }
+  }
+  return x1 < 0 ? 0 : Math.max(x1 - x0, y1 - y0);
+}"""
+
+
+def test_fastslam_particle_spread_is_visible(page: Any, lab_server: str, artifacts: Path) -> None:
+    errors = open_page(page, f"{lab_server}/lab/fastslam?hz=20&seed=0")
+    page.wait_for_function(FRAMES + " && window.slamLab.counters.step > 20", timeout=30_000)
+    spread = page.evaluate(PURPLE_BOX, "zoom")
+    zoom = page.evaluate("window.slamLab.zoom")
+    page.screenshot(path=str(artifacts / "fastslam-zoom.png"), full_page=True)
+    assert spread >= 10, f"particle cloud drawn {spread} px wide"
+    assert zoom["spreadPx"] >= 10 and zoom["barLabel"]
+    assert errors == []
+
+
+def test_loop_close_loop_now_changes_the_drawn_path_and_the_ate(page: Any, lab_server: str, artifacts: Path) -> None:
+    errors = open_page(page, f"{lab_server}/lab/loop?hz=20&seed=0")
+    page.wait_for_function(FRAMES, timeout=15_000)
+    set_control(page, "steps_per_s", 60)
+    page.wait_for_function("window.slamLab.counters.step >= 470", timeout=90_000)
+    page.locator("#ctl-paused").check()
+    page.wait_for_function("window.slamLab.values.paused === true", timeout=5000)
+    page.wait_for_timeout(300)
+    ate_text = page.locator('[data-num="ate_rmse_m"]').inner_text()
+    before = page.evaluate("Array.from(document.getElementById('world').getContext('2d')"
+                           ".getImageData(0, 0, 760, 540).data)")
+    page.screenshot(path=str(artifacts / "loop-before.png"))
+    for _ in range(30):  # press where the robot sees its start again (a step further each time until accepted)
+        page.evaluate("window.slamLab.notices = []")
+        page.locator("#act-close_loop").click()
+        page.wait_for_function("window.slamLab.notices.some(n => n.startsWith('close loop'))", timeout=10_000)
+        if any("accepted" in n for n in page.evaluate("window.slamLab.notices")):
+            break
+        page.locator("#act-step").click()
+    page.wait_for_function(f"document.querySelector('[data-num=\"ate_rmse_m\"]').textContent !== '{ate_text}'",
+                           timeout=10_000)
+    page.wait_for_function("window.slamLab.sections.GHST !== undefined", timeout=5000)
+    page.wait_for_timeout(300)
+    after = page.evaluate("Array.from(document.getElementById('world').getContext('2d')"
+                          ".getImageData(0, 0, 760, 540).data)")
+    page.screenshot(path=str(artifacts / "loop-after.png"))
+    changed = sum(1 for i in range(0, len(before), 4) if before[i:i + 3] != after[i:i + 3])
+    assert changed > 500, f"only {changed} pixels changed"
+    assert float(page.locator('[data-num="ate_rmse_m"]').inner_text()) < float(ate_text)
+    assert any("accepted" in n for n in page.evaluate("window.slamLab.notices"))
+    assert errors == []
+
+
+def test_panels_show_labels_with_units_and_only_rows_that_apply(page: Any, lab_server: str) -> None:
+    errors = open_page(page, f"{lab_server}/lab/ekf?hz=20")
+    page.wait_for_function(FRAMES, timeout=15_000)
+    text = page.locator("#numbers").inner_text()
+    assert "trajectory error, ATE RMSE (m)" in text and "ate_rmse_m" not in text and "ate rmse m" not in text
+    assert "effective particles" not in text  # the EKF has no particles: no particle rows
+    page.locator("#ctl-estimator").select_option("fastslam")
+    page.wait_for_function("window.slamLab.rows.includes('n_eff')", timeout=10_000)
+    assert "effective particles" in page.locator("#numbers").inner_text()
+    assert errors == []
+
+
+def test_graph_page_draws_the_true_path(page: Any, lab_server: str) -> None:
+    errors = open_page(page, f"{lab_server}/lab/graph?hz=20&seed=1")
+    page.wait_for_function(FRAMES + " && window.slamLab.counters.poses > 30", timeout=15_000)
+    assert page.evaluate("window.slamLab.sections.TPTH")[0] > 30
+    assert errors == []

@@ -359,3 +359,21 @@ def test_holding_an_arrow_into_a_wall_stops_the_robot_on_every_world() -> None:
         x0, y0, x1, y1 = s.sim.world.bounds
         assert xs[-1] == xs[-100] and x0 <= min(xs) and max(xs) <= x1, scenario  # stopped, inside the world
         assert s.sim.collisions >= 100
+
+
+def test_close_loop_now_bends_the_path_and_lowers_the_ate() -> None:
+    s = PAGE_BY_SLUG["loop"].make(0)
+    assert s.values["loop_closure"] is False and s.values["motion_noise"] == 4.0  # the page's defaults
+    s.apply({"type": "param", "name": "paused", "value": True})
+    for _ in range(470):  # once round the block and past the start
+        s.apply({"type": "action", "name": "step"})
+    assert isinstance(s, SimSession)
+    before, ate_before = s.trajectory().copy(), s.ate_rmse()
+    s.apply({"type": "action", "name": "close_loop"})
+    assert any("accepted" in n for n in s.notices), s.notices
+    after = s.trajectory()
+    assert np.abs(after - before).max() > 0.3  # the correction spread along the path
+    assert s.ate_rmse() < 0.7 * ate_before
+    assert s.ate_rmse() == pytest.approx(ate(after, np.asarray(s.true_path)).rmse_m)
+    sec = dict(s.sections())
+    np.testing.assert_allclose(sec["GHST"], before[:, :2])  # the ghost is the path before the correction

@@ -43,6 +43,7 @@ TAGS: dict[str, tuple[str, str]] = {
     "EPOS": ("(1,3)", "estimated robot pose"),
     "PCOV": ("(1,4)", "estimated pose covariance, xy block, row-major 2x2"),
     "EPTH": ("(T,2)", "estimated path (the back end's trajectory when it re-estimates the past)"),
+    "GHST": ("(T,2)", "a ghost: the estimated path before the last correction (loop closure, optimisation)"),
     "ELMK": ("(L,2)", "estimated landmark positions"),
     "ECOV": ("(L,4)", "estimated landmark covariances, row-major 2x2"),
     "OBSV": ("(K,2)", "this step's observations projected from the estimated pose into the world"),

@@ -43,7 +43,9 @@ PAGES: tuple[Page, ...] = (
          lambda seed: SimSession(page="loop", title="loop closure", seed=seed, estimator="graph", scenario="loop",
                                  drive="route", graph_view=True,
                                  controls=("estimator", "motion_noise", "steps_per_s", "loop_closure",
-                                           "wrong_association", "few_landmarks"), speed=20.0)),
+                                           "wrong_association", "few_landmarks"), speed=20.0,
+                                 # drift enough to see, and the closure left to the button (or the switch)
+                                 defaults={"loop_closure": False, "motion_noise": 4.0})),
     Page("simulator", 9, "The simulator", "drive with the arrow keys or let it explore; any estimator",
          lambda seed: SimSession(page="simulator", title="the simulator", seed=seed, estimator="ekf", drive="keys",
                                  controls=("estimator", "scenario", "landmarks", "drive", "steps_per_s",

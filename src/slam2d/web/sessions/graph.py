@@ -170,7 +170,8 @@ class GraphSession(Session):
             pts = np.asarray(vals.points)
             lm_by_id = pts[np.searchsorted(vals.point_keys, prob.obs_ids)] if len(pts) else pts
             seg_obs = np.hstack([poses[prob.obs_steps, :2], lm_by_id])
-            out += [("ELMK", pts), ("GNOD", poses[:, :2]), ("GEDG", seg_obs[:: max(1, len(seg_obs) // 1500)])]
+            out += [("ELMK", pts), ("GNOD", poses[:, :2]), ("GEDG", seg_obs[:: max(1, len(seg_obs) // 1500)]),
+                    ("GHST", downsample(np.asarray(self.dr_path)[:, :2]))]
             if self.omega is not None:
                 out.append(("HEAT", self.omega))
         return out

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -81,16 +81,18 @@ class SimSession(Session):
 
     def __init__(self, *, page: str, title: str, estimator: str, seed: int = 0, scenario: str = "room",
                  drive: str = "keys", controls: Sequence[str] = (), speed: float = 10.0, heat: bool = False,
-                 graph_view: bool = False) -> None:
+                 graph_view: bool = False, defaults: Mapping[str, Any] | None = None) -> None:
         self.page, self.title = page, title
         names = estimator_names()
         if estimator not in names:
             raise ValueError(f"page {page!r}: estimator {estimator!r} is not registered; valid: {names}")
         ctl = set(controls) | {"seed", "paused"}
-        super().__init__(_sim_params(names, estimator, scenario=scenario, drive=drive, controls=ctl, speed=speed),
-                         seed=seed)
+        page_defaults = dict(defaults or {})
+        params = [dataclasses.replace(p, default=page_defaults[p.name]) if p.name in page_defaults else p
+                  for p in _sim_params(names, estimator, scenario=scenario, drive=drive, controls=ctl, speed=speed)]
+        super().__init__(params, seed=seed)
         for k, v in {"estimator": estimator, "scenario": scenario, "drive": drive, "steps_per_s": speed,
-                     **_HIDDEN_DEFAULTS}.items():
+                     **_HIDDEN_DEFAULTS, **page_defaults}.items():
             self.values.setdefault(k, v)
         self.heat = heat
         self.show_graph = graph_view
@@ -155,6 +157,7 @@ class SimSession(Session):
         self.est_path: list[Array] = [np.asarray(self.snap.pose, dtype=np.float64).copy()]
         self.seen: set[int] = set()
         self.last_step: Step | None = None
+        self.ghost: Array | None = None
         # break-it damage (same rules as slam2d.lab.breakit, applied step by step): its own random stream
         self.breakit_rng = np.random.default_rng([int(self.values["seed"]), 0xB4EA])
         ids = self.sim.world.landmark_ids
@@ -213,6 +216,7 @@ class SimSession(Session):
                                 )
             return
         obs = self.last_step.observations
+        before = self.trajectory().copy()
         try:
             ok = bool(self.est.close_loop_now(obs.z[obs.landmark_id != -2]))
         except Exception as e:
@@ -220,6 +224,8 @@ class SimSession(Session):
             return
         self.snap = self.est.estimate()
         self._ate_cache = (-1, 0.0)  # the back end may have re-estimated the whole trajectory
+        if ok:
+            self.ghost = before  # drawn faintly: the path before the correction, for before/after
         self.notices.append("close loop: accepted — the correction spread along the trajectory" if ok else
                             "close loop: no verified loop from here (drive back near the start and try again)")
 
@@ -371,6 +377,8 @@ class SimSession(Session):
             ("EPOS", np.asarray(snap.pose)),
             ("EPTH", downsample(self.trajectory()[:, :2])),
         ]
+        if self.ghost is not None:
+            out.append(("GHST", downsample(self.ghost[:, :2])))
         if snap.pose_cov is not None:
             out.append(("PCOV", np.asarray(snap.pose_cov)[:2, :2].reshape(1, 4)))
         if len(snap.landmarks):

@@ -1,13 +1,14 @@
 // One lab page: opens the page's websocket, builds its controls from the server's parameter list, shows live
 // numbers, and draws the latest frame on every animation frame. Test hooks live on window.slamLab.
 import { decodeFrame } from './frames.js';
-import { WorldView, drawHeat, COLORS } from './draw.js';
+import { WorldView, drawHeat, drawParticleZoom, COLORS } from './draw.js';
 
 const page = document.body.dataset.page;
 const query = new URLSearchParams(location.search);
 const canvas = document.getElementById('world');
 const view = new WorldView(canvas);
 const heatCanvas = document.getElementById('heat');
+const zoomCanvas = document.getElementById('zoom');
 const statusEl = document.getElementById('status');
 const numbersEl = document.getElementById('numbers');
 const controlsEl = document.getElementById('controls');
@@ -17,7 +18,7 @@ const errorsEl = document.getElementById('errors');
 const lab = {
   page, frames: 0, bytes: 0, drawn: 0, fps: 0, recvFps: 0, seq: -1, decodeMs: 0, drawMs: 0,
   pose: null, estPose: null, counters: {}, values: {}, notices: [], errors: [], hello: null, connected: false,
-  rows: [], inactive: [],
+  rows: [], inactive: [], zoom: null,
   sections: {},
   send: (obj) => send(obj),
 };
@@ -199,6 +200,7 @@ function draw() {
   view.dots(s.SCAN, COLORS.scan, 2);
   view.segments(s.GEDG, COLORS.graphEdge, 1);
   view.path(s.TPTH, COLORS.truePath, 2);
+  view.path(s.GHST, COLORS.ghost, 1.5, [2, 3]);
   view.path(s.EPTH, COLORS.estPath, 2, [6, 4]);
   view.crosses(s.TLMK, COLORS.trueLm, 4);
   if (s.OCOV) view.ellipses(s.OBSV, s.OCOV, COLORS.obsEllipse);
@@ -215,6 +217,7 @@ function draw() {
   view.robot(s.TPOS, COLORS.robot);
   view.robot(s.EPOS, COLORS.estRobot, 0.35);
   if (heatCanvas) drawHeat(heatCanvas, s.HEAT);
+  if (zoomCanvas) lab.zoom = drawParticleZoom(zoomCanvas, s.PART, s.TPOS);
   for (const [n, v] of Object.entries(lab.counters)) {
     const el = numbersEl.querySelector(`[data-num="${n}"]`);
     if (el) el.textContent = fmt(v);
