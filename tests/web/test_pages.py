@@ -8,6 +8,7 @@ from typing import Any
 import pytest
 
 from slam2d.lab.registry import estimator_names
+from slam2d.web.checks import CHECKS
 from slam2d.web.pages import PAGES
 
 pytestmark = pytest.mark.browser
@@ -56,6 +57,15 @@ def test_page_loads_without_console_errors(page: Any, lab_server: str, artifacts
         for p in hello["params"]:
             assert page.locator(f"#ctl-{p['name']}").count() == 1
         assert page.evaluate("window.slamLab.notices") == []  # every page's back end exists
+        # the chapter's check question: a wrong answer, then the right one, each with its feedback
+        check = CHECKS[slug]
+        wrong = (check.answer + 1) % len(check.choices)
+        page.locator(f"#check-choice-{wrong}").click()
+        page.wait_for_function("window.slamLab.feedback && window.slamLab.feedback.correct === false", timeout=5000)
+        assert page.locator("#check-feedback.wrong").inner_text() == check.feedback[wrong]
+        page.locator(f"#check-choice-{check.answer}").click()
+        page.wait_for_function("window.slamLab.feedback && window.slamLab.feedback.correct === true", timeout=5000)
+        assert page.locator("#check-feedback.right").inner_text() == check.feedback[check.answer]
     page.screenshot(path=str(artifacts / f"page-{slug}.png"), full_page=True)
     assert errors == []
 

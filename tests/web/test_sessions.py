@@ -377,3 +377,24 @@ def test_close_loop_now_bends_the_path_and_lowers_the_ate() -> None:
     assert s.ate_rmse() == pytest.approx(ate(after, np.asarray(s.true_path)).rmse_m)
     sec = dict(s.sections())
     np.testing.assert_allclose(sec["GHST"], before[:, :2])  # the ghost is the path before the correction
+
+
+@pytest.mark.parametrize("slug", [p.slug for p in PAGES])
+def test_every_chapter_has_a_check_question_with_feedback(slug: str) -> None:
+    from slam2d.web.checks import CHECKS
+
+    s = PAGE_BY_SLUG[slug].make(0)
+    check = CHECKS[slug]
+    hello = s.hello()
+    assert hello["check"] == {"question": check.question, "choices": list(check.choices)}  # never the answer
+    right = s.apply({"type": "answer", "choice": check.answer})
+    assert right is not None and right["correct"] is True and right["message"]
+    messages = {right["message"]}
+    for wrong in (i for i in range(len(check.choices)) if i != check.answer):
+        reply = s.apply({"type": "answer", "choice": wrong})
+        assert reply is not None and reply["correct"] is False
+        messages.add(reply["message"])
+    assert len(messages) == len(check.choices)  # each answer gets its own explanation
+    for bad in (-1, len(check.choices), 0.5, True, "0", None):
+        with pytest.raises(CommandError, match="choice"):
+            s.apply({"type": "answer", "choice": bad})

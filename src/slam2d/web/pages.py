@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from slam2d.web.checks import CHECKS
 from slam2d.web.sessions import AssociationSession, FeaturesSession, GraphSession, MapsSession, Session, SimSession
 
 
@@ -14,7 +15,13 @@ class Page:
     number: int
     title: str
     summary: str
-    make: Callable[[int], Session]
+    build: Callable[[int], Session]
+
+    def make(self, seed: int) -> Session:
+        """A new session for this page (with the chapter's check question)."""
+        session = self.build(seed)
+        session.check = CHECKS.get(self.slug)
+        return session
 
 
 PAGES: tuple[Page, ...] = (
@@ -51,6 +58,8 @@ PAGES: tuple[Page, ...] = (
                                  controls=("estimator", "scenario", "landmarks", "drive", "steps_per_s",
                                            "sensor_range_m", "obs_noise", "motion_noise", "particles",
                                            "obs_ellipses"))),
+    Page("connections", 10, "Connections", "what lidar, visual and multi-robot SLAM add to what you have seen",
+         lambda seed: MapsSession(seed, page="connections", title="connections", layer="points")),
 )
 
 PAGE_BY_SLUG = {p.slug: p for p in PAGES}

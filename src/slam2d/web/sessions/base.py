@@ -14,6 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam2d.models.sensors import range_bearing_inverse_jacobians
+from slam2d.web.checks import Check
 from slam2d.web.params import CommandError, Param
 
 Array = NDArray[np.float64]
@@ -96,6 +97,7 @@ class Session:
         self.notices: list[str] = []
         self.actions: tuple[tuple[str, str], ...] = ()
         self.keys_down: set[str] = set()
+        self.check: Check | None = None
 
     # --- commands -----------------------------------------------------------------------------------------------
     def apply(self, msg: Mapping[str, Any]) -> dict[str, Any] | None:
@@ -136,8 +138,14 @@ class Session:
         raise CommandError(f"unknown command type {kind!r}; valid types: key, param, action, answer, ping")
 
     def answer(self, msg: Mapping[str, Any]) -> dict[str, Any]:
-        """A reply to the chapter's check question (pages without one reject the command)."""
-        raise CommandError(f"page {self.page!r} has no check question")
+        """Judge an answer to the chapter's check question: ``{"type": "answer", "choice": i}``."""
+        if self.check is None:
+            raise CommandError(f"page {self.page!r} has no check question")
+        choice = msg.get("choice")
+        n = len(self.check.choices)
+        if isinstance(choice, bool) or not isinstance(choice, int) or not 0 <= choice < n:
+            raise CommandError(f"answer needs choice = an integer in 0..{n - 1} (got {choice!r})")
+        return self.check.judge(choice)
 
     def on_param(self, name: str, value: Any, old: Any) -> None:
         """React to a parameter change (values[name] is already set)."""
@@ -150,7 +158,8 @@ class Session:
         return {**self.state(), "type": "hello", "page": self.page, "title": self.title,
                 "scalars": list(self.scalars), "labels": {k: self.labels.get(k, k) for k in self.scalars},
                 "params": [p.describe() for p in self.params.values()],
-                "actions": [{"name": a, "label": lab} for a, lab in self.actions]}
+                "actions": [{"name": a, "label": lab} for a, lab in self.actions],
+                "check": self.check.describe() if self.check is not None else None}
 
     def state(self) -> dict[str, Any]:
         """What changes with commands but not every frame: values, notices, drawing bounds, rows that apply."""

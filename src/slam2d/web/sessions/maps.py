@@ -43,9 +43,11 @@ class MapsSession(Session):
     scalars = ("step", "landmarks", "scan_points", "walls", "places", "connections")
     labels = MAPS_LABELS
 
-    def __init__(self, seed: int = 0) -> None:
+    def __init__(self, seed: int = 0, *, page: str = "maps", title: str = "map representations",
+                 layer: str = "landmarks") -> None:
+        self.page, self.title = page, title
         params = [
-            Param("layer", "representation", "choice", "landmarks",
+            Param("layer", "representation", "choice", layer,
                   choices=("landmarks", "points", "occupancy", "topology")),
             seed_param(),
             Param("paused", "paused", "bool", False),

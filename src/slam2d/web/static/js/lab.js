@@ -18,7 +18,7 @@ const errorsEl = document.getElementById('errors');
 const lab = {
   page, frames: 0, bytes: 0, drawn: 0, fps: 0, recvFps: 0, seq: -1, decodeMs: 0, drawMs: 0,
   pose: null, estPose: null, counters: {}, values: {}, notices: [], errors: [], hello: null, connected: false,
-  rows: [], inactive: [], zoom: null,
+  rows: [], inactive: [], zoom: null, feedback: null,
   sections: {},
   send: (obj) => send(obj),
 };
@@ -110,6 +110,43 @@ function buildControls(params, actions) {
   }
 }
 
+// the chapter's check question: choices as buttons; the server judges the answer and sends its feedback
+function buildCheck(check) {
+  if (!check || document.getElementById('check')) return;
+  const box = document.createElement('section');
+  box.id = 'check';
+  box.className = 'check';
+  const h = document.createElement('h3');
+  h.textContent = 'Check:';
+  const q = document.createElement('p');
+  q.textContent = check.question;
+  box.append(h, q);
+  check.choices.forEach((text, i) => {
+    const b = document.createElement('button');
+    b.id = `check-choice-${i}`;
+    b.className = 'choice';
+    b.textContent = text;
+    b.addEventListener('click', () => send({ type: 'answer', choice: i }));
+    box.appendChild(b);
+  });
+  const fb = document.createElement('p');
+  fb.id = 'check-feedback';
+  box.appendChild(fb);
+  document.querySelector('main').appendChild(box);
+}
+
+function showFeedback(msg) {
+  lab.feedback = msg;
+  const fb = document.getElementById('check-feedback');
+  if (!fb) return;
+  fb.textContent = msg.message;
+  fb.className = msg.correct ? 'right' : 'wrong';
+  document.querySelectorAll('#check .choice').forEach((b, i) => {
+    b.classList.toggle('picked-right', msg.correct && i === msg.choice);
+    b.classList.toggle('picked-wrong', !msg.correct && i === msg.choice);
+  });
+}
+
 function applyState(msg) {
   lab.values = msg.values || {};
   lab.notices = msg.notices || [];
@@ -147,9 +184,12 @@ function onText(text) {
     scalarNames = msg.scalars || [];
     buildNumbers(scalarNames, msg.labels);
     buildControls(msg.params || [], msg.actions || []);
+    buildCheck(msg.check);
     applyState(msg);
   } else if (msg.type === 'state') {
     applyState(msg);
+  } else if (msg.type === 'feedback') {
+    showFeedback(msg);
   } else if (msg.type === 'error') {
     lab.errors.push(msg.message);
     const d = document.createElement('div');
