@@ -398,3 +398,38 @@ def test_every_chapter_has_a_check_question_with_feedback(slug: str) -> None:
     for bad in (-1, len(check.choices), 0.5, True, "0", None):
         with pytest.raises(CommandError, match="choice"):
             s.apply({"type": "answer", "choice": bad})
+
+
+def test_features_image_holds_every_wall_and_the_threshold_matters_at_default_noise() -> None:
+    s = FeaturesSession(seed=0)
+    counts = {}
+    for t in (0.1, 0.6):
+        s.apply({"type": "param", "name": "threshold_rel", "value": t})
+        counts[t] = len(s.detected)
+    assert counts[0.1] > counts[0.6]  # the issue-19 complaint: nothing changed between 0.1 and 0.6
+    s.apply({"type": "param", "name": "image_noise", "value": 0.0})
+    s.apply({"type": "param", "name": "threshold_rel", "value": 0.3})
+    assert s.score.recall == 1.0 and s.score.precision == 1.0  # all eight corners: no wall is cut off the image
+
+
+def test_sensor_range_circle_follows_the_robot_and_the_slider() -> None:
+    s = PAGE_BY_SLUG["simulator"].make(0)
+    s.apply({"type": "param", "name": "sensor_range_m", "value": 3.5})
+    sec = dict(s.sections())
+    np.testing.assert_allclose(sec["RNGE"], [*s.sim.pose[:2], 3.5])
+    assert "RNGE" not in dict(PAGE_BY_SLUG["drift"].make(0).sections())  # no range control, no circle
+
+
+def test_simulator_graph_view_toggle_draws_the_back_ends_graph() -> None:
+    s = PAGE_BY_SLUG["simulator"].make(0)
+    assert "view" in s.state()["inactive"]  # the EKF has no graph
+    s.apply({"type": "param", "name": "estimator", "value": "graph"})
+    s.apply({"type": "param", "name": "paused", "value": True})
+    s.apply({"type": "param", "name": "drive", "value": "route"})
+    for _ in range(20):
+        s.apply({"type": "action", "name": "step"})
+    assert "GEDG" not in dict(s.sections())
+    s.apply({"type": "param", "name": "view", "value": "graph"})
+    assert "view" not in s.state()["inactive"]
+    sec = dict(s.sections())
+    assert len(sec["GNOD"]) == 21 and len(sec["GEDG"]) >= 20  # a node per pose, at least the odometry chain

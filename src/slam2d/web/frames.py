@@ -40,6 +40,7 @@ TAGS: dict[str, tuple[str, str]] = {
     "TLMK": ("(N,2)", "true landmark positions (m)"),
     "TPOS": ("(1,3)", "true robot pose x,y,theta"),
     "TPTH": ("(T,2)", "true path so far (downsampled)"),
+    "RNGE": ("(1,3)", "sensor range circle: centre x, y (the true robot) and radius (m)"),
     "EPOS": ("(1,3)", "estimated robot pose"),
     "PCOV": ("(1,4)", "estimated pose covariance, xy block, row-major 2x2"),
     "EPTH": ("(T,2)", "estimated path (the back end's trajectory when it re-estimates the past)"),

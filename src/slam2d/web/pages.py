@@ -57,7 +57,7 @@ PAGES: tuple[Page, ...] = (
          lambda seed: SimSession(page="simulator", title="the simulator", seed=seed, estimator="ekf", drive="keys",
                                  controls=("estimator", "scenario", "landmarks", "drive", "steps_per_s",
                                            "sensor_range_m", "obs_noise", "motion_noise", "particles",
-                                           "obs_ellipses"))),
+                                           "obs_ellipses", "view"))),
     Page("connections", 10, "Connections", "what lidar, visual and multi-robot SLAM add to what you have seen",
          lambda seed: MapsSession(seed, page="connections", title="connections", layer="points")),
 )

@@ -141,7 +141,8 @@ class FeaturesSession(Session):
         params = [
             Param("threshold_rel", "threshold (× strongest response)", "float", 0.1, lo=0.0, hi=1.0, step=0.01),
             Param("sigma_px", "window sigma (pixels)", "float", 1.0, lo=0.5, hi=4.0, step=0.1),
-            Param("image_noise", "image noise (std)", "float", 0.0, lo=0.0, hi=0.5, step=0.01),
+            # some noise by default: on a clean image every corner is equally strong and the threshold hardly matters
+            Param("image_noise", "image noise (std)", "float", 0.2, lo=0.0, hi=0.5, step=0.01),
             seed_param(),
         ]
         super().__init__(params, seed)
@@ -151,12 +152,15 @@ class FeaturesSession(Session):
         # a corner is a wall endpoint; each appears twice (two walls meet there)
         self.truth = np.unique(np.round(np.vstack([walls[:, :2], walls[:, 2:]]), 6), axis=0)
         self.rng = np.random.default_rng(int(self.values["seed"]))
-        self.grid = OccupancyGrid(self.sim.world.bounds, OccupancyConfig(resolution_m=0.1))
+        # a 1 m margin: walls on the world's edge must lie inside the image, with room for the detector's window
+        x0, y0, x1, y1 = self.sim.world.bounds
+        self.grid = OccupancyGrid((x0 - 1.0, y0 - 1.0, x1 + 1.0, y1 + 1.0), OccupancyConfig(resolution_m=0.1))
         self.base: Array = rasterize_segments(self.grid, walls).astype(np.float64)
         self._renoise()
 
     def bounds(self) -> tuple[float, float, float, float]:
-        return tuple(float(b) for b in self.sim.world.bounds)  # type: ignore[return-value]
+        x0, y0, x1, y1 = (float(b) for b in self.sim.world.bounds)
+        return (x0 - 1.0, y0 - 1.0, x1 + 1.0, y1 + 1.0)
 
     def _renoise(self) -> None:
         noise = self.rng.standard_normal(self.base.shape) * float(self.values["image_noise"])

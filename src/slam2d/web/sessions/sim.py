@@ -55,6 +55,8 @@ def _sim_params(estimators: list[str], default_estimator: str, *, scenario: str,
               live=False, help="multiplies every odometry noise variance; 0 = perfect odometry"),
         Param("particles", "particles", "int", 50, lo=1, hi=2000, step=1, live=False),
         Param("obs_ellipses", "observation ellipses", "bool", False),
+        Param("view", "show", "choice", "estimate", choices=("estimate", "graph"),
+              help="graph: the back end's factor graph (poses, landmarks and the factors between them)"),
         Param("loop_closure", "loop closure", "bool", True, live=False,
               help="the estimator's loop_closure switch (only back ends that have one)"),
         Param("wrong_association", "break it: 50% wrong landmark ids", "bool", False, live=False,
@@ -68,7 +70,7 @@ def _sim_params(estimators: list[str], default_estimator: str, *, scenario: str,
 
 #: values every simulator session has, whether or not the page shows a control for them
 _HIDDEN_DEFAULTS: dict[str, Any] = {"landmarks": 0, "sensor_range_m": 8.0, "obs_noise": 1.0, "motion_noise": 1.0,
-                                    "particles": 50, "obs_ellipses": False, "loop_closure": True,
+                                    "particles": 50, "obs_ellipses": False, "view": "estimate", "loop_closure": True,
                                     "wrong_association": False, "few_landmarks": False}
 
 
@@ -187,7 +189,10 @@ class SimSession(Session):
 
     def inactive(self) -> list[str]:
         fields = self._config_fields(str(self.values["estimator"]))
-        return [p for p in ("particles", "loop_closure") if p in self.params and p not in fields]
+        out: list[str] = [p for p in ("particles", "loop_closure") if p in self.params and p not in fields]
+        if "view" in self.params and not isinstance(self.est, SupportsGraphView):
+            out.append("view")  # only graph back ends have a graph to show
+        return out
 
     # --- commands -----------------------------------------------------------------------------------------------
     def on_param(self, name: str, value: Any, old: Any) -> None:
@@ -377,6 +382,8 @@ class SimSession(Session):
             ("EPOS", np.asarray(snap.pose)),
             ("EPTH", downsample(self.trajectory()[:, :2])),
         ]
+        if "sensor_range_m" in self.params:  # pages where the range is a control draw it around the robot
+            out.append(("RNGE", np.array([*self.sim.pose[:2], float(self.sim.config.sensor.max_range_m)])))
         if self.ghost is not None:
             out.append(("GHST", downsample(self.ghost[:, :2])))
         if snap.pose_cov is not None:
@@ -400,7 +407,8 @@ class SimSession(Session):
             h = self.heat_matrix()
             if h is not None:
                 out.append(("HEAT", h))
-        if self.show_graph and isinstance(self.est, SupportsGraphView):
+        show_graph = self.show_graph or self.values["view"] == "graph"
+        if show_graph and isinstance(self.est, SupportsGraphView):
             out.extend(graph_view_sections(self.est.graph_view()))
         return out
 

@@ -95,6 +95,15 @@ export class WorldView {
     c.fillStyle = color; c.fill();
   }
 
+  // a circle: centre x, y and radius (m), e.g. the sensor's range around the robot
+  circle(s, color) {
+    if (!s || s.rows === 0) return;
+    const [x, y, r] = s.data, c = this.ctx;
+    c.beginPath();
+    c.arc(this.px(x), this.py(y), Math.max(this.scale * r, 0), 0, 2 * Math.PI);
+    c.setLineDash([4, 4]); c.strokeStyle = color; c.lineWidth = 1; c.stroke(); c.setLineDash([]);
+  }
+
   // rays from a pose to points
   rays(pose, pts, color) {
     if (!pose || !pts || pts.rows === 0) return;

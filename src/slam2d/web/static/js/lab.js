@@ -240,6 +240,7 @@ function draw() {
   view.dots(s.SCAN, COLORS.scan, 2);
   view.segments(s.GEDG, COLORS.graphEdge, 1);
   view.path(s.TPTH, COLORS.truePath, 2);
+  view.circle(s.RNGE, COLORS.range);
   view.path(s.GHST, COLORS.ghost, 1.5, [2, 3]);
   view.path(s.EPTH, COLORS.estPath, 2, [6, 4]);
   view.crosses(s.TLMK, COLORS.trueLm, 4);
