@@ -365,9 +365,14 @@ def test_close_loop_now_bends_the_path_and_lowers_the_ate() -> None:
     s = PAGE_BY_SLUG["loop"].make(0)
     assert s.values["loop_closure"] is False and s.values["motion_noise"] == 4.0  # the page's defaults
     s.apply({"type": "param", "name": "paused", "value": True})
-    for _ in range(470):  # once round the block and past the start
+    prompted_at = None
+    for i in range(470):  # once round the block and past the start
         s.apply({"type": "action", "name": "step"})
+        if prompted_at is None and any(n.startswith("try this: you are back") for n in s.notices):
+            prompted_at = i
     assert isinstance(s, SimSession)
+    # the page noticed the return and pointed at the button, near the end of the lap, not before
+    assert prompted_at is not None and prompted_at > 300, prompted_at
     before, ate_before = s.trajectory().copy(), s.ate_rmse()
     s.apply({"type": "action", "name": "close_loop"})
     assert any("accepted" in n for n in s.notices), s.notices

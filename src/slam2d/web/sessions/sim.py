@@ -25,6 +25,8 @@ from slam2d.web.sessions.base import Array, Sections, Session, abs_correlation, 
 
 #: wall time one frame may spend stepping the simulation and estimator before the frame goes out anyway
 STEP_BUDGET_S = 0.05
+#: the loop page's "you are back" prompt: after driving farther than AWAY from the start, coming within NEAR of it
+RETURN_AWAY_M, RETURN_NEAR_M = 20.0, 6.0
 
 SIM_LABELS = {
     "step": "step", "time_s": "simulated time (s)", "landmarks_seen": "landmarks seen so far",
@@ -160,6 +162,7 @@ class SimSession(Session):
         self.seen: set[int] = set()
         self.last_step: Step | None = None
         self.ghost: Array | None = None
+        self._been_away = False
         # break-it damage (same rules as slam2d.lab.breakit, applied step by step): its own random stream
         self.breakit_rng = np.random.default_rng([int(self.values["seed"]), 0xB4EA])
         ids = self.sim.world.landmark_ids
@@ -231,6 +234,7 @@ class SimSession(Session):
         self._ate_cache = (-1, 0.0)  # the back end may have re-estimated the whole trajectory
         if ok:
             self.ghost = before  # drawn faintly: the path before the correction, for before/after
+            self.notices = [n for n in self.notices if not n.startswith("try this")]
         self.notices.append("close loop: accepted — the correction spread along the trajectory" if ok else
                             "close loop: no verified loop from here (drive back near the start and try again)")
 
@@ -270,7 +274,23 @@ class SimSession(Session):
         ids = raw.observations.landmark_id  # "seen" counts what the sensor saw, before any break-it damage
         self.seen.update(int(i) for i in np.unique(ids[ids >= 0]))
         self.true_path.append(self.sim.pose.copy())
+        if self.page == "loop":
+            self._watch_for_return()
         self.est_path.append(np.asarray(self.snap.pose, dtype=np.float64).copy())
+
+    def _watch_for_return(self) -> None:
+        """The loop page's try-this: notice when the robot comes back to where it started after a long drive, and
+        point at the button (once per return)."""
+        start = self.true_path[0][:2]
+        d = float(np.hypot(*(self.sim.pose[:2] - start)))
+        if d > RETURN_AWAY_M:
+            self._been_away = True
+        elif d < RETURN_NEAR_M and self._been_away:
+            self._been_away = False
+            self.notices = [n for n in self.notices if not n.startswith(("try this", "close loop"))]
+            self.notices.append("try this: you are back near the start, with the drift of the whole loop in the "
+                                "estimate — press 'close loop now' and watch the blue path bend onto the truth (the "
+                                "grey ghost keeps the old one) and the ATE drop.")
 
     def damage(self, step: Step) -> Step:
         """The break-it toggles: what the estimator is told, not what the world does."""

@@ -28,6 +28,25 @@ let ws = null;
 let latest = null;
 let drawnSeq = -1;
 let scalarNames = [];
+let worldBounds = null;
+
+// the view fits the world, and grows (never shrinks) when the estimate drifts outside it, so nothing is clipped
+function fitEstimate(s) {
+  if (!worldBounds) return;
+  const [bx0, by0, bx1, by1] = view.bounds;
+  let [x0, y0, x1, y1] = [bx0, by0, bx1, by1];
+  for (const sec of [s.EPTH, s.EPOS, s.GHST]) {
+    if (!sec) continue;
+    for (let i = 0; i < sec.rows; i++) {
+      const x = sec.data[sec.cols * i], y = sec.data[sec.cols * i + 1];
+      if (x < x0) x0 = x; if (x > x1) x1 = x; if (y < y0) y0 = y; if (y > y1) y1 = y;
+    }
+  }
+  if (x0 < bx0 || y0 < by0 || x1 > bx1 || y1 > by1) {
+    const m = 0.05 * Math.max(x1 - x0, y1 - y0);
+    view.setBounds([x0 - m, y0 - m, x1 + m, y1 + m]);
+  }
+}
 const paramsByName = {};
 
 function send(obj) {
@@ -164,7 +183,7 @@ function applyState(msg) {
     d.textContent = n;
     noticesEl.appendChild(d);
   }
-  if (msg.bounds) view.setBounds(msg.bounds);
+  if (msg.bounds) { worldBounds = msg.bounds.slice(); view.setBounds(worldBounds); }
   // only the rows that apply to the current settings are shown
   const rows = new Set(msg.rows || scalarNames);
   lab.rows = Array.from(rows);
@@ -234,6 +253,7 @@ function draw() {
   if (!latest || latest.seq === drawnSeq) return;
   const t0 = performance.now();
   const s = latest.sections;
+  fitEstimate(s);
   view.clear();
   view.grid(s.GRID, s.GRDM);
   if (!s.GRID) view.segments(s.WALL, COLORS.wall, 2);
