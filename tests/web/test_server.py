@@ -236,3 +236,36 @@ def test_a_long_jcbb_search_in_one_tab_never_delays_another(server: Any, artifac
         assert any("stopped at its" in n and "time budget" in n for n in state["notices"]), state["notices"]
         assert t < TIME_BUDGET_S + 3.0
     assert proc.poll() is None
+
+
+def test_a_flood_of_commands_is_answered_and_hurts_nobody(server: Any) -> None:
+    """Hundreds of commands at once (valid, out of range, for another page's session): each gets its reply or a
+    visible error, the session then still obeys, and another tab is served meanwhile."""
+    addr, proc = server
+    flood = [{"type": "param", "name": "sensor_range_m", "value": 1000.0},  # out of range: rejected, named
+             {"type": "param", "name": "method", "value": "jcbb"},  # another page's control: rejected
+             {"type": "action", "name": "step"}, {"type": "ping"}] * 100
+
+    async def go() -> tuple[int, int, dict[str, Any]]:
+        async with websockets.connect(f"ws://{addr}/ws/simulator?hz=30", compression=None) as a, \
+                websockets.connect(f"ws://{addr}/ws/ekf?hz=30", compression=None) as b:
+            await _hello(a)
+            for c in flood:
+                await a.send(json.dumps(c))
+            async with websockets.connect(f"ws://{addr}/ws/maps?hz=5", compression=None) as c:  # a new tab
+                await _hello(c)
+            await _next_frame(b)  # the other tab keeps streaming
+            errors = states = 0
+            while errors + states < 300:  # 200 rejected commands + 100 steps; pongs are counted out
+                msg = await asyncio.wait_for(a.recv(), 30)
+                if isinstance(msg, str):
+                    kind = json.loads(msg)["type"]
+                    errors += kind == "error"
+                    states += kind == "state"
+            await a.send(json.dumps({"type": "param", "name": "sensor_range_m", "value": 4.0}))
+            return errors, states, await _next_json(a, "state")
+
+    errors, states, last = _run(go())
+    assert errors == 200 and states == 100
+    assert last["values"]["sensor_range_m"] == 4.0
+    assert proc.poll() is None
