@@ -57,9 +57,11 @@ class World:
         return np.vstack([self.walls, *[m.segments(time_s) for m in self.moving]])
 
     def solid_segments(self, time_s: float) -> Array:
-        """What the robot cannot drive through at ``time_s``: walls, moving objects and the edge of ``bounds``
-        (worlds without walls are fenced by their bounds, so no robot ever leaves the world)."""
-        return np.vstack([self.segments_at(time_s), box_walls(*self.bounds)])
+        """What the robot cannot drive through: the static walls and the edge of ``bounds`` (worlds without walls
+        are fenced by their bounds, so no robot ever leaves the world). Moving objects are not solid: a robot
+        cannot stop a forklift that drives at it, and a drone flies over them. ``time_s`` is kept for worlds whose
+        solid parts may one day move."""
+        return np.vstack([self.walls, box_walls(*self.bounds)])
 
     def moving_positions(self, time_s: float) -> Array:
         """(M,2) centres of the moving objects."""
