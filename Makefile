@@ -1,5 +1,6 @@
 # Two commands do all the set-up on a fresh machine:
-#   make run   - create .venv, install slam2d, and start the web lab (prints the URL; Ctrl+C stops it)
+#   make run   - create .venv, install slam2d[web,viz], and start the web lab (prints the URL; Ctrl+C stops it;
+#                PORT=8010 serves on another port)
 #   make demo  - every estimator on the default scenario: a table and out/demo.png
 #   make test  - create .venv, install test dependencies, lint, type-check and run the whole test suite
 PYTHON ?= python3
@@ -15,8 +16,19 @@ $(STAMP): pyproject.toml
 	rm -f $(VENV)/.installed-*
 	touch $(STAMP)
 
-run: $(STAMP)
-	$(VENV)/bin/slam2d lab
+# serving the lab needs only the web and viz extras (not the test tools): its own stamp, so `make run` on a fresh
+# clone installs a small environment; PORT=8010 picks another port
+PORT ?= 8000
+RUN_STAMP := $(VENV)/.installed-run-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
+
+$(RUN_STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --disable-pip-version-check -e ".[web,viz]"
+	rm -f $(VENV)/.installed-run-*
+	touch $(RUN_STAMP)
+
+run: $(RUN_STAMP)
+	@$(VENV)/bin/slam2d lab --port $(PORT)
 
 demo: $(STAMP)
 	$(VENV)/bin/slam2d demo --out out

@@ -329,3 +329,24 @@ def test_bad_observations_and_config_raise():
                          ("gate_probability", 1.0), ("nn_max_distance", -1.0), ("method", "magic")]:
         with pytest.raises(ValueError, match=field):
             AssociationConfig(**{field: value})
+
+
+def test_candidates_from_pose_belief_is_the_linearised_prediction_covariance() -> None:
+    from slam2d.association import candidates_from_pose_belief
+    from slam2d.models.sensors import range_bearing
+
+    rng = np.random.default_rng(7)
+    pose = np.array([1.0, 2.0, 0.4])
+    lm = rng.uniform(-3, 6, size=(4, 2))
+    pcov = np.diag([0.2, 0.1, 0.05]) ** 2
+    r = np.diag([0.1, 0.02]) ** 2
+    c = candidates_from_pose_belief(pose, pcov, lm, np.arange(4) + 7, r)
+    # Jacobian of the stacked predictions w.r.t. the pose by central differences (independent of the library's)
+    eps = 1e-6
+    jac = np.column_stack([(range_bearing(pose + eps * d, lm) - range_bearing(pose - eps * d, lm)).ravel() / (2 * eps)
+                           for d in np.eye(3)])
+    expected = jac @ pcov @ jac.T + np.kron(np.eye(4), r)
+    assert c.S_joint is not None
+    np.testing.assert_allclose(c.S_joint, expected, rtol=1e-6, atol=1e-10)
+    np.testing.assert_allclose(c.S, [expected[2 * i:2 * i + 2, 2 * i:2 * i + 2] for i in range(4)], atol=1e-10)
+    np.testing.assert_array_equal(c.ids, np.arange(4) + 7)

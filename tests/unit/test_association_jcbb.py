@@ -147,3 +147,26 @@ def test_jcbb_prefers_the_shifted_pattern_that_nearest_neighbour_gets_wrong():
     np.testing.assert_array_equal(res.assignment, [10, 11, 12])
     nn = associate(obs, cands, AssociationConfig(method="nn"), rng=np.random.default_rng(0))
     assert not np.array_equal(nn.assignment, [10, 11, 12])
+
+
+def test_jcbb_time_budget_returns_its_best_so_far_flagged_truncated():
+    rng = np.random.default_rng(5)
+    checked = 0
+    for _ in range(20):
+        obs, cands = random_problem(rng, max_obs=7, max_cand=10, spacing_m=0.3)
+        full = associate(obs, cands, AssociationConfig(method="jcbb"), rng=rng)
+        # a budget that is already spent when the search starts: the root node sees the deadline passed
+        cut = associate(obs, cands, AssociationConfig(method="jcbb", jcbb_time_budget_s=0.0), rng=rng)
+        roomy = associate(obs, cands, AssociationConfig(method="jcbb", jcbb_time_budget_s=3600.0), rng=rng)
+        np.testing.assert_array_equal(roomy.assignment, full.assignment)  # a budget never reached changes nothing
+        assert not roomy.truncated
+        if full.nodes > 1:
+            checked += 1
+            assert cut.truncated and cut.nodes == 1
+        m = cut.assignment >= 0
+        assert m.sum() <= (full.assignment >= 0).sum()
+        if m.any():
+            assert cut.joint_nis <= stats.chi2.ppf(0.99, 2 * int(m.sum())) + 1e-9
+    assert checked >= 5
+    with pytest.raises(ValueError, match="jcbb_time_budget_s"):
+        AssociationConfig(method="jcbb", jcbb_time_budget_s=-1.0)

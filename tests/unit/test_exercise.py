@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -69,23 +68,8 @@ def test_loader_explains_bad_files(tmp_path: Path) -> None:
         _load(tmp_path, "twoargs", "def augment_state(mu, P):\n    return mu, P\n")
 
 
-def test_command_says_not_available_yet_without_ekf(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
-                                                    capsys: pytest.CaptureFixture[str]) -> None:
-    monkeypatch.setattr(exercise, "reference_augment_state", lambda: None)
-    p = tmp_path / "good.py"
-    p.write_text(CORRECT)
-    assert main(["exercise", "check", str(p)]) == 2
-    assert "not available yet" in capsys.readouterr().err
-
-
-def _require_reference() -> None:
-    if importlib.util.find_spec("slam2d.filters.ekf_slam") is None or exercise.reference_augment_state() is None:
-        pytest.skip("slam2d.filters.ekf_slam.augment_state has not landed yet (EKF-SLAM)")
-
-
 def test_command_passes_a_correct_learner_against_the_library(tmp_path: Path,
                                                               capsys: pytest.CaptureFixture[str]) -> None:
-    _require_reference()
     p = tmp_path / "good.py"
     p.write_text(CORRECT)
     assert main(["exercise", "check", str(p)]) == 0
@@ -95,7 +79,6 @@ def test_command_passes_a_correct_learner_against_the_library(tmp_path: Path,
 
 def test_command_fails_a_wrong_learner_against_the_library(tmp_path: Path,
                                                            capsys: pytest.CaptureFixture[str]) -> None:
-    _require_reference()
     p = tmp_path / "bad.py"
     p.write_text(NO_CROSS)
     assert main(["exercise", "check", str(p)]) == 1

@@ -7,6 +7,7 @@ import subprocess
 import sys
 import time
 import urllib.request
+from pathlib import Path
 
 import pytest
 
@@ -46,3 +47,73 @@ def _check_lab(proc: subprocess.Popen[str], port: int) -> None:
 def test_lab_rejects_a_bad_port(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["lab", "--port", "70000"]) == 2
     assert "--port" in capsys.readouterr().err
+
+
+def test_ctrl_c_stops_the_lab_promptly_even_while_a_tab_searches(artifacts: Path) -> None:
+    """SIGINT while an association tab runs a long JCBB search and a simulator tab streams frames: the server
+    exits (the event loop never blocks on a session, and session threads never hold the process up)."""
+    import asyncio
+    import json
+    import signal
+
+    import websockets
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])
+    proc = subprocess.Popen([sys.executable, "-m", "slam2d", "lab", "--port", str(port)], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 20
+    while True:
+        try:
+            urllib.request.urlopen(f"http://127.0.0.1:{port}/api/status", timeout=1).read()
+            break
+        except OSError:
+            assert proc.poll() is None and time.monotonic() < deadline, "lab did not start"
+            time.sleep(0.1)
+    try:
+        async def open_tabs() -> float:
+            a = await websockets.connect(f"ws://127.0.0.1:{port}/ws/association?hz=30", compression=None)
+            b = await websockets.connect(f"ws://127.0.0.1:{port}/ws/simulator?hz=60", compression=None)
+            try:
+                for msg in ({"type": "param", "name": "landmarks", "value": 150},
+                            {"type": "param", "name": "pose_sigma_m", "value": 1.2},
+                            {"type": "param", "name": "method", "value": "jcbb"}):
+                    await a.send(json.dumps(msg))
+                await asyncio.sleep(0.5)  # the search is running now
+                t0 = time.monotonic()
+                proc.send_signal(signal.SIGINT)
+                while proc.poll() is None and time.monotonic() - t0 < 15:
+                    await asyncio.sleep(0.02)
+                return time.monotonic() - t0
+            finally:
+                a.transport.abort()
+                b.transport.abort()
+
+        took = asyncio.run(open_tabs())
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        err = proc.communicate()[1].decode(errors="replace")
+    assert "Traceback" not in err, err[-2000:]
+    (artifacts / "ctrl-c.txt").write_text(f"SIGINT to exit with two busy tabs: {took:.2f} s\n")
+    assert proc.returncode is not None and took < 5.0, f"took {took:.1f} s"
+
+
+def test_a_busy_port_is_one_clear_line(capsys: pytest.CaptureFixture[str]) -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = int(s.getsockname()[1])
+        assert main(["lab", "--port", str(port)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"port {port} is already in use" in err and "--port" in err
+    assert "PORT=" in err  # how to choose another from `make run`
+
+
+def test_make_run_installs_only_what_serving_needs_and_takes_a_port() -> None:
+    makefile = (Path(__file__).resolve().parents[2] / "Makefile").read_text()
+    run_rule = makefile.split("\nrun:")[1].split("\n\n")[0]
+    assert "--port $(PORT)" in run_rule and "PORT ?= 8000" in makefile
+    install = makefile.split("$(RUN_STAMP): pyproject.toml")[1].split("\n\n")[0]
+    assert '".[web,viz]"' in install and "dev" not in install

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from slam2d.association.base import CLUTTER, AssociationConfig, AssociationResult, Candidates, associate_known
@@ -53,7 +55,9 @@ def associate(observations: Observations, candidates: Candidates, config: Associ
         obs, cand = individual_compatibility(problem)
         return finalize(problem, obs, cand)
     if config.method == "jcbb":
-        obs, cand, nis, nodes, truncated = jcbb(problem, config.gate_probability, config.jcbb_max_nodes)
+        budget = config.jcbb_time_budget_s
+        deadline = None if budget is None else time.monotonic() + budget
+        obs, cand, nis, nodes, truncated = jcbb(problem, config.gate_probability, config.jcbb_max_nodes, deadline)
         return finalize(problem, obs, cand, nis=nis, nodes=nodes, truncated=truncated)
     if config.method == "ransac":
         obs, cand, hyps = ransac(problem, config.ransac_iterations, config.ransac_min_pairs,

@@ -53,6 +53,9 @@ class AssociationConfig:
     jcbb_max_nodes: int = 1_000_000
     """jcbb only: stop the search after visiting this many nodes and return the best hypothesis found so far
     (``AssociationResult.truncated`` is then True, so the caller knows the answer may not be optimal)."""
+    jcbb_time_budget_s: float | None = None
+    """jcbb only: stop the search after this much wall time (s) and return the best hypothesis found so far
+    (``truncated`` True); None: no time limit, the answer depends only on the inputs."""
 
     def __post_init__(self) -> None:
         from slam2d.config import _coerce  # local: avoid a cycle at import time
@@ -72,6 +75,9 @@ class AssociationConfig:
             raise ValueError(f"AssociationConfig.ransac_min_pairs must be >= 1 (got {self.ransac_min_pairs})")
         if self.jcbb_max_nodes < 1:
             raise ValueError(f"AssociationConfig.jcbb_max_nodes must be >= 1 (got {self.jcbb_max_nodes})")
+        if self.jcbb_time_budget_s is not None and not self.jcbb_time_budget_s >= 0.0:
+            raise ValueError("AssociationConfig.jcbb_time_budget_s must be >= 0 or None "
+                             f"(got {self.jcbb_time_budget_s})")
 
 
 @dataclass(frozen=True)
@@ -105,7 +111,8 @@ class AssociationResult:
     joint_nis = sum of d2 over matched observations evaluated jointly (with S_joint when given); nan when one
     candidate is claimed by two observations (only ``nn`` and ``known`` can do that) since no joint Gaussian exists.
     ``nodes``: search effort (jcbb: interpretation-tree nodes visited; ransac: hypotheses scored; else 0).
-    ``truncated``: jcbb stopped at ``jcbb_max_nodes`` and the answer may not be the optimum.
+    ``truncated``: jcbb stopped at ``jcbb_max_nodes`` or ``jcbb_time_budget_s`` and the answer may not be the
+    optimum.
     """
 
     assignment: IntArray

@@ -36,6 +36,7 @@ are used in the search: LAPACK solves on tiny matrices are slow when OpenBLAS th
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -67,6 +68,7 @@ class _Search:
     col_comp: IntArray  # (A,) ... of each candidate
     num_comp: int
     max_nodes: int
+    deadline: float | None = None  # time.monotonic() after which the search stops with its best so far
     nodes: int = 0
     truncated: bool = False
     best_n: int = 0
@@ -141,7 +143,7 @@ def _visit(st: _Search, node: _Node, used: BoolArray, decided: BoolArray) -> Non
     """Search every completion of ``node``'s hypothesis: rows not ``decided`` may still be paired with candidates
     not ``used``."""
     st.nodes += 1
-    if st.nodes > st.max_nodes:
+    if st.nodes > st.max_nodes or (st.deadline is not None and time.monotonic() > st.deadline):
         st.truncated = True
         return
     n = len(node.pairs)
@@ -260,8 +262,13 @@ def _seed_incumbent(st: _Search, d2: Array) -> None:
         st.best_n, st.best_nis, st.best_key, st.best_pairs = len(pairs), nis, st.key_of(pairs), pairs
 
 
-def jcbb(problem: Problem, probability: float, max_nodes: int) -> tuple[IntArray, IntArray, float, int, bool]:
+def jcbb(problem: Problem, probability: float, max_nodes: int, deadline: float | None = None
+         ) -> tuple[IntArray, IntArray, float, int, bool]:
     """Run the exact branch and bound on ``problem``.
+
+    The search stops after ``max_nodes`` nodes or once ``time.monotonic()`` passes ``deadline`` (None: no time
+    limit), and then returns the best jointly compatible hypothesis found so far with ``truncated`` True; the
+    starting incumbent is feasible, so a truncated answer is always a valid (if possibly smaller) hypothesis.
 
     Returns (obs (n,), cand (n,), joint NIS, nodes visited, truncated). Shapes: pairs sorted by observation.
     """
@@ -289,7 +296,7 @@ def jcbb(problem: Problem, probability: float, max_nodes: int) -> tuple[IntArray
 
     st = _Search(ic=ic, nu=problem.nu[np.ix_(order, act)], cov=cov, thr=joint_thresholds(probability, kk),
                  row_comp=labels[:kk].astype(np.int64), col_comp=labels[kk:].astype(np.int64), num_comp=num_comp,
-                 max_nodes=max_nodes, best_key=tuple([n_cand] * k), key_of=key_of)
+                 max_nodes=max_nodes, deadline=deadline, best_key=tuple([n_cand] * k), key_of=key_of)
     _seed_incumbent(st, problem.d2[np.ix_(order, act)])
     s_act = cov.reshape(a, 2, a, 2)[np.arange(a), :, np.arange(a), :]
     root = _Node([], np.zeros((0, 2 * a)), np.zeros(0), s_act.copy(), np.zeros((a, 2)), 0.0)

@@ -94,3 +94,16 @@ def joint_innovation_covariance(hp: ArrayLike, hl: ArrayLike, cov: ArrayLike, ro
     sj[ar, :, ar, :] = s  # diagonal blocks: the per-measurement S, which carry the noise r
     sj = sj.reshape(n * m, n * m)
     return s, 0.5 * (sj + sj.T)
+
+
+def candidates_from_pose_belief(pose: ArrayLike, pose_cov: ArrayLike, landmarks: ArrayLike, ids: ArrayLike,
+                                sensor_cov: ArrayLike) -> Candidates:
+    """Candidates for a known map seen from an uncertain pose: landmarks exact, pose ~ N(pose, pose_cov).
+
+    The only correlation between predictions is the shared pose error, so ``S_joint = Hp P Hp^T + I (x) R``.
+    Shapes: pose (3,), pose_cov (3,3), landmarks (L,2), ids (L,), sensor_cov (2,2).
+    """
+    lm = np.asarray(landmarks, dtype=np.float64).reshape(-1, 2)
+    cov = np.zeros((3 + 2 * len(lm), 3 + 2 * len(lm)))
+    cov[:3, :3] = np.asarray(pose_cov, dtype=np.float64)
+    return candidates_from_belief(pose, lm, ids, cov, sensor_cov)

@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import inspect
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,7 +23,6 @@ from numpy.typing import NDArray
 Array = NDArray[np.float64]
 AugmentFn = Callable[..., Any]
 
-REFERENCE = ("slam2d.filters.ekf_slam", "augment_state")
 #: the lesson's expected landmark for robot (5, 3, pi/4), range 2, bearing 0 (to the 3 decimals the lesson prints)
 LESSON_LANDMARK = (6.414, 4.414)
 
@@ -46,14 +44,11 @@ class Verdict:
     message: str
 
 
-def reference_augment_state() -> AugmentFn | None:
-    """The library's ``augment_state``, or None while EKF-SLAM has not landed."""
-    try:
-        mod = importlib.import_module(REFERENCE[0])
-    except ImportError:
-        return None
-    fn = getattr(mod, REFERENCE[1], None)
-    return fn if callable(fn) else None
+def reference_augment_state() -> AugmentFn:
+    """The library's ``augment_state`` (EKF-SLAM), the answer a learner's function is checked against."""
+    from slam2d.filters.ekf_slam import augment_state
+
+    return augment_state
 
 
 def _spd(rng: np.random.Generator, n: int, scale: float) -> Array:
@@ -170,11 +165,6 @@ def register(sub: Any) -> None:
 
 def cmd(args: argparse.Namespace) -> int:
     ref = reference_augment_state()
-    if ref is None:
-        print("slam2d exercise: not available yet: the reference implementation "
-              f"{REFERENCE[0]}.{REFERENCE[1]} (EKF-SLAM) is not in this installation, so there is nothing to "
-              "check against.", file=sys.stderr)
-        return 2
     if args.random < 0:
         raise ValueError(f"--random must be >= 0 (got {args.random})")
     fn = load_learner(args.file)

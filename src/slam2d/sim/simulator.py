@@ -20,6 +20,7 @@ from slam2d.log import DYNAMIC_ID, Log, MarkerReadings, Observations, Scan, Step
 from slam2d.models.floor_markers import sense_floor_markers
 from slam2d.models.motion import sample_odometry, velocity_increment
 from slam2d.models.sensors import range_bearing, sense_clutter, sense_landmarks, visible
+from slam2d.sim.collision import allowed_motion
 from slam2d.sim.raycast import simulate_scan_culled
 from slam2d.sim.scenarios import SCENARIOS, ScenarioConfig
 from slam2d.sim.trajectory import AutoExplorer, WaypointFollower
@@ -68,6 +69,8 @@ class Simulator:
         """keep every step for :meth:`to_log`; False streams (memory stays flat over a long shift)."""
         self.time_s = 0.0
         self.index = 0
+        self.collisions = 0
+        """steps whose motion a wall blocked"""
         self._has_scan = self.config.lidar.enabled and len(self.world.walls) > 0
         self._rec: dict[str, list[Any]] = {k: [] for k in ("odom", "stamps", "poses", "obs_step", "z", "ids", "desc",
                                                             "gps_step", "gps", "scan_step", "scan", "dyn",
@@ -86,7 +89,10 @@ class Simulator:
         """Drive (v, w) for one time step and sense; returns what an estimator may see (no truth)."""
         cfg = self.config
         dt = float(cfg.dt_s or 0.1)
-        u_true = velocity_increment(np.array([v, w]), dt)
+        # walls are solid: a move into one keeps only its rotation (odometry then measures that true motion)
+        u_true, blocked = allowed_motion(self.pose, velocity_increment(np.array([v, w]), dt),
+                                         self.world.solid_segments(self.time_s))
+        self.collisions += blocked
         self.pose = se2.compose(self.pose, u_true)
         self.time_s += dt
         self.index += 1
@@ -214,6 +220,6 @@ def simulate(scenario: str | ScenarioConfig = "room", seed: int = 0, **overrides
     sim = Simulator(cfg, seed)
     driver = sim.driver()
     for _ in range(int(sim.config.steps or 0)):
-        v, w = driver.command(sim.pose, sim.world.segments_at(sim.time_s))
+        v, w = driver.command(sim.pose, sim.world.solid_segments(sim.time_s))
         sim.step(v, w)
     return sim.to_log()

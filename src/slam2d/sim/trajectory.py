@@ -37,20 +37,34 @@ class WaypointFollower:
 
 @dataclass
 class AutoExplorer:
-    """Wander: drive straight, turn away from walls seen by three feeler rays, jitter the heading now and then."""
+    """Wander: drive straight, jitter the heading now and then, and steer away from walls seen by feeler rays.
+
+    Seven feelers (straight ahead, +-0.3, +-0.6 and +-1.2 rad) look for walls. Too close ahead or at the front
+    corners: turn toward the more open side, and keep turning that way until the way is clear (no dithering in
+    corners); very close ahead: turn on the spot. ``world_segments`` should include the world's edge
+    (:meth:`World.solid_segments`) so that open worlds are explored too.
+    """
 
     speed_mps: float
     rng: np.random.Generator
     clearance_m: float = 1.8
     max_turn_rate_rps: float = 1.2
     _turn: float = field(default=0.0)
+    _avoid: float = field(default=0.0)
+
+    FEELERS = np.array([-1.2, -0.6, -0.3, 0.0, 0.3, 0.6, 1.2])
 
     def command(self, pose: Array, world_segments: Array | None = None) -> tuple[float, float]:
         segs = np.zeros((0, 4)) if world_segments is None else world_segments
-        feel = cast_rays(pose, np.array([-0.6, 0.0, 0.6]), segs, 10.0)
-        if feel[1] < self.clearance_m or min(feel[0], feel[2]) < 0.6 * self.clearance_m:
-            w = self.max_turn_rate_rps * (1.0 if feel[2] >= feel[0] else -1.0)
-            return 0.2 * self.speed_mps, w
+        feel = cast_rays(pose, self.FEELERS, segs, 10.0)
+        ahead = float(feel[2:5].min())
+        if ahead < self.clearance_m or min(feel[1], feel[5]) < 0.6 * self.clearance_m or \
+                min(feel[0], feel[6]) < 0.25 * self.clearance_m:
+            if self._avoid == 0.0:  # choose a side once, then keep it until the way is clear
+                self._avoid = 1.0 if feel[4:].sum() >= feel[:3].sum() else -1.0
+            v = 0.0 if ahead < 0.5 * self.clearance_m else 0.2 * self.speed_mps
+            return v, self._avoid * self.max_turn_rate_rps
+        self._avoid = 0.0
         if self.rng.random() < 0.05:
             self._turn = float(self.rng.uniform(-0.6, 0.6))
         return self.speed_mps, self._turn

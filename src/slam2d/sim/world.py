@@ -160,6 +160,13 @@ class World:
     def _tile_cache(self) -> dict[tuple[int, int, float], Array]:
         return {}
 
+    def solid_segments(self, time_s: float) -> Array:
+        """What the robot cannot drive through: the static walls and the edge of ``bounds`` (worlds without walls
+        are fenced by their bounds, so no robot ever leaves the world). Moving objects are not solid: a robot
+        cannot stop a forklift that drives at it, and a drone flies over them. ``time_s`` is kept for worlds whose
+        solid parts may one day move."""
+        return np.vstack([self.walls, box_walls(*self.bounds)])
+
     def moving_positions(self, time_s: float) -> Array:
         """(M,2) centres of the moving objects."""
         if not self.moving:

@@ -24,11 +24,13 @@ from fastapi.responses import FileResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
-from slam2d.web.backends import status
+from slam2d.association import METHODS
+from slam2d.lab.registry import estimator_names
 from slam2d.web.frames import TAGS, encode_frame
 from slam2d.web.pages import PAGE_BY_SLUG, PAGES
 from slam2d.web.params import CommandError
 from slam2d.web.sessions import Session
+from slam2d.web.worker import SessionWorker
 
 STATIC = Path(__file__).parent / "static"
 MAX_COMMAND_BYTES = 4096
@@ -69,11 +71,11 @@ def parse_command(data: str | bytes | None) -> dict[str, Any]:
 class Connection:
     """One websocket: a receiver task applying commands, a sender loop advancing the session and sending frames."""
 
-    def __init__(self, ws: WebSocket, session: Session, hz: int) -> None:
-        self.ws, self.session, self.hz = ws, session, hz
+    def __init__(self, ws: WebSocket, session: Session, hz: int, worker: SessionWorker) -> None:
+        self.ws, self.session, self.hz, self.worker = ws, session, hz, worker
         self.lock = asyncio.Lock()  # one writer at a time on the socket
-        # the session is stepped in a worker thread (so one slow estimator does not stall the other tabs);
-        # commands wait for the step in progress, so a session is never changed while it steps
+        # every session call runs in the session's own worker thread (so one slow estimator or JCBB search never
+        # stalls the event loop or another tab); commands wait for the step in progress
         self.session_lock = asyncio.Lock()
         self.closed = False
 
@@ -90,7 +92,7 @@ class Connection:
             try:
                 cmd = parse_command(msg.get("text") if msg.get("text") is not None else msg.get("bytes"))
                 async with self.session_lock:
-                    reply = self.session.apply(cmd)
+                    reply = await self.worker.run(self.session.apply, cmd)
             except CommandError as e:
                 await self.send_json({"type": "error", "message": str(e)})
                 continue
@@ -113,7 +115,7 @@ class Connection:
         while not self.closed:
             now = time.perf_counter()
             async with self.session_lock:
-                frame = await asyncio.to_thread(self._tick, min(now - last, 0.5), seq)
+                frame = await self.worker.run(self._tick, min(now - last, 0.5), seq)
             last = now
             async with self.lock:
                 await self.ws.send_bytes(frame)
@@ -160,8 +162,8 @@ def create_app() -> FastAPI:
 
     @app.get("/api/status")
     async def api_status() -> JSONResponse:
-        return JSONResponse({**status(), "pages": [{"slug": p.slug, "number": p.number, "title": p.title,
-                                                     "summary": p.summary} for p in PAGES],
+        pages = [{"slug": p.slug, "number": p.number, "title": p.title, "summary": p.summary} for p in PAGES]
+        return JSONResponse({"estimators": estimator_names(), "association_methods": list(METHODS), "pages": pages,
                              "frame_tags": {k: list(v) for k, v in TAGS.items()}})
 
     @app.get("/lab/{slug}")
@@ -181,13 +183,16 @@ def create_app() -> FastAPI:
         seed = _int_query(ws, "seed", 0, 0, 2**31 - 1)
         hz = _int_query(ws, "hz", DEFAULT_HZ, 1, 120)
         conn: Connection | None = None
+        tasks: list[asyncio.Task[None]] = []
+        worker = SessionWorker(f"session-{slug}")
         try:
-            session = spec.make(seed)
-            conn = Connection(ws, session, hz)
-            await conn.send_json(_nan_safe(session.hello()))
+            session = await worker.run(spec.make, seed)
+            conn = Connection(ws, session, hz, worker)
+            await conn.send_json(_nan_safe(await worker.run(session.hello)))
             recv = asyncio.create_task(conn.receiver())
             send = asyncio.create_task(conn.sender())
-            done, pending = await asyncio.wait({recv, send}, return_when=asyncio.FIRST_COMPLETED)
+            tasks = [recv, send]
+            done, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
             for t in pending:
                 t.cancel()
             for t in pending:
@@ -199,10 +204,14 @@ def create_app() -> FastAPI:
                 exc = t.exception()
                 if exc is not None and not _is_disconnect(exc):
                     log.warning("session %s ended with %s: %s", slug, type(exc).__name__, exc)
+        except asyncio.CancelledError:  # the server is shutting down (Ctrl+C): end this page quietly
+            for t in tasks:
+                t.cancel()
         except Exception as exc:  # never let one page take the server down
             if not _is_disconnect(exc):
                 log.exception("session %s failed", slug)
         finally:
+            worker.close()
             if ws.client_state == WebSocketState.CONNECTED and ws.application_state == WebSocketState.CONNECTED:
                 try:
                     await ws.close()
@@ -223,6 +232,7 @@ def serve(host: str = "127.0.0.1", port: int = 8000, log_level: str = "warning")
     """Run the lab with uvicorn (blocking). Per-message compression is off: it costs more CPU than it saves here."""
     import uvicorn
 
+    # graceful shutdown gives open pages 0.3 s to close, then cancels them (Ctrl+C must stop the lab promptly)
     config = uvicorn.Config(create_app(), host=host, port=port, log_level=log_level, ws_per_message_deflate=False,
-                            ws_max_size=WS_MAX_SIZE)
+                            ws_max_size=WS_MAX_SIZE, timeout_graceful_shutdown=0.3)  # type: ignore[arg-type]
     uvicorn.Server(config).run()

@@ -5,7 +5,8 @@ export const COLORS = {
   wall: '#555', trueLm: '#222', truePath: '#2a9d3a', robot: '#2a9d3a', estPath: '#1f5fbf', estRobot: '#1f5fbf',
   estLm: '#d62828', ellipse: 'rgba(31,95,191,0.75)', obs: 'rgba(240,140,0,0.55)', obsEllipse: 'rgba(240,140,0,0.8)',
   particle: 'rgba(140,60,180,0.55)', good: '#2a9d3a', bad: '#d62828', newObs: '#888', scan: '#444',
-  graphEdge: 'rgba(31,95,191,0.35)', graphNode: '#1f5fbf', feature: '#d62828', trueCorner: '#2a9d3a',
+  graphEdge: 'rgba(31,95,191,0.18)', graphNode: '#1f5fbf', feature: '#d62828', trueCorner: '#2a9d3a',
+  ghost: 'rgba(120,120,120,0.75)', range: 'rgba(240,140,0,0.35)',
 };
 
 export class WorldView {
@@ -94,6 +95,15 @@ export class WorldView {
     c.fillStyle = color; c.fill();
   }
 
+  // a circle: centre x, y and radius (m), e.g. the sensor's range around the robot
+  circle(s, color) {
+    if (!s || s.rows === 0) return;
+    const [x, y, r] = s.data, c = this.ctx;
+    c.beginPath();
+    c.arc(this.px(x), this.py(y), Math.max(this.scale * r, 0), 0, 2 * Math.PI);
+    c.setLineDash([4, 4]); c.strokeStyle = color; c.lineWidth = 1; c.stroke(); c.setLineDash([]);
+  }
+
   // rays from a pose to points
   rays(pose, pts, color) {
     if (!pose || !pts || pts.rows === 0) return;
@@ -175,4 +185,44 @@ export function drawHeat(canvas, s) {
   off.getContext('2d').putImageData(img, 0, 0);
   c.imageSmoothingEnabled = false;
   c.drawImage(off, 0, 0, canvas.width, canvas.height);
+}
+
+// The particle cloud magnified: particles relative to their mean, scaled so the cloud fills about half the inset,
+// with the true pose (green) and a labelled scale bar. Returns {spreadPx, metresPerPx} for the page's test hooks.
+export function drawParticleZoom(canvas, parts, truePose) {
+  const c = canvas.getContext('2d'), W = canvas.width, H = canvas.height;
+  c.fillStyle = '#fff'; c.fillRect(0, 0, W, H);
+  c.strokeStyle = '#ccc'; c.strokeRect(0.5, 0.5, W - 1, H - 1);
+  if (!parts || parts.rows === 0) return null;
+  const d = parts.data, k = parts.cols, n = parts.rows;
+  let mx = 0, my = 0;
+  for (let i = 0; i < n; i++) { mx += d[k * i]; my += d[k * i + 1]; }
+  mx /= n; my /= n;
+  let r = 0;
+  for (let i = 0; i < n; i++) r = Math.max(r, Math.hypot(d[k * i] - mx, d[k * i + 1] - my));
+  const extent = Math.max(r, 0.002); // metres from the mean to the farthest particle (2 mm floor)
+  const scale = (0.45 * Math.min(W, H)) / extent; // pixels per metre
+  const px = (x) => W / 2 + scale * (x - mx), py = (y) => H / 2 - scale * (y - my);
+  c.fillStyle = COLORS.particle;
+  let x0 = Infinity, x1 = -Infinity, y0 = Infinity, y1 = -Infinity;
+  for (let i = 0; i < n; i++) {
+    const X = px(d[k * i]), Y = py(d[k * i + 1]);
+    c.fillRect(X - 2, Y - 2, 4, 4);
+    x0 = Math.min(x0, X); x1 = Math.max(x1, X); y0 = Math.min(y0, Y); y1 = Math.max(y1, Y);
+  }
+  if (truePose && truePose.rows) {
+    const X = px(truePose.data[0]), Y = py(truePose.data[1]);
+    c.strokeStyle = COLORS.robot; c.lineWidth = 2;
+    c.beginPath(); c.moveTo(X - 6, Y); c.lineTo(X + 6, Y); c.moveTo(X, Y - 6); c.lineTo(X, Y + 6); c.stroke();
+  }
+  // scale bar: the round length (1, 2 or 5 x 10^k m) nearest a quarter of the inset
+  const target = (0.25 * W) / scale, p10 = Math.pow(10, Math.floor(Math.log10(target)));
+  const len = [1, 2, 5, 10].map((m) => m * p10).reduce((a, b) => (Math.abs(b - target) < Math.abs(a - target) ? b : a));
+  const bar = len * scale;
+  c.strokeStyle = '#222'; c.lineWidth = 2;
+  c.beginPath(); c.moveTo(10, H - 12); c.lineTo(10 + bar, H - 12); c.stroke();
+  c.fillStyle = '#222'; c.font = '12px system-ui, sans-serif';
+  const label = len >= 1 ? `${len} m` : len >= 0.01 ? `${Math.round(len * 100)} cm` : `${Math.round(len * 1000)} mm`;
+  c.fillText(label, 14 + bar, H - 8);
+  return { spreadPx: Math.max(x1 - x0, y1 - y0), metresPerPx: 1 / scale, barLabel: label };
 }

@@ -1,13 +1,14 @@
 // One lab page: opens the page's websocket, builds its controls from the server's parameter list, shows live
 // numbers, and draws the latest frame on every animation frame. Test hooks live on window.slamLab.
 import { decodeFrame } from './frames.js';
-import { WorldView, drawHeat, COLORS } from './draw.js';
+import { WorldView, drawHeat, drawParticleZoom, COLORS } from './draw.js';
 
 const page = document.body.dataset.page;
 const query = new URLSearchParams(location.search);
 const canvas = document.getElementById('world');
 const view = new WorldView(canvas);
 const heatCanvas = document.getElementById('heat');
+const zoomCanvas = document.getElementById('zoom');
 const statusEl = document.getElementById('status');
 const numbersEl = document.getElementById('numbers');
 const controlsEl = document.getElementById('controls');
@@ -17,6 +18,7 @@ const errorsEl = document.getElementById('errors');
 const lab = {
   page, frames: 0, bytes: 0, drawn: 0, fps: 0, recvFps: 0, seq: -1, decodeMs: 0, drawMs: 0,
   pose: null, estPose: null, counters: {}, values: {}, notices: [], errors: [], hello: null, connected: false,
+  rows: [], inactive: [], zoom: null, feedback: null,
   sections: {},
   send: (obj) => send(obj),
 };
@@ -26,6 +28,25 @@ let ws = null;
 let latest = null;
 let drawnSeq = -1;
 let scalarNames = [];
+let worldBounds = null;
+
+// the view fits the world, and grows (never shrinks) when the estimate drifts outside it, so nothing is clipped
+function fitEstimate(s) {
+  if (!worldBounds) return;
+  const [bx0, by0, bx1, by1] = view.bounds;
+  let [x0, y0, x1, y1] = [bx0, by0, bx1, by1];
+  for (const sec of [s.EPTH, s.EPOS, s.GHST]) {
+    if (!sec) continue;
+    for (let i = 0; i < sec.rows; i++) {
+      const x = sec.data[sec.cols * i], y = sec.data[sec.cols * i + 1];
+      if (x < x0) x0 = x; if (x > x1) x1 = x; if (y < y0) y0 = y; if (y > y1) y1 = y;
+    }
+  }
+  if (x0 < bx0 || y0 < by0 || x1 > bx1 || y1 > by1) {
+    const m = 0.05 * Math.max(x1 - x0, y1 - y0);
+    view.setBounds([x0 - m, y0 - m, x1 + m, y1 + m]);
+  }
+}
 const paramsByName = {};
 
 function send(obj) {
@@ -39,12 +60,20 @@ function fmt(v) {
   return Math.abs(v) >= 100 ? v.toFixed(1) : v.toFixed(3);
 }
 
-function buildNumbers(names) {
+function buildNumbers(names, labels) {
   numbersEl.innerHTML = '';
   for (const n of names) {
     const row = document.createElement('div');
     row.className = 'num';
-    row.innerHTML = `<span class="k">${n.replaceAll('_', ' ')}</span><span class="v" data-num="${n}">–</span>`;
+    row.dataset.row = n;
+    const k = document.createElement('span');
+    k.className = 'k';
+    k.textContent = (labels && labels[n]) || n;
+    const v = document.createElement('span');
+    v.className = 'v';
+    v.dataset.num = n;
+    v.textContent = '–';
+    row.append(k, v);
     numbersEl.appendChild(row);
   }
 }
@@ -100,6 +129,43 @@ function buildControls(params, actions) {
   }
 }
 
+// the chapter's check question: choices as buttons; the server judges the answer and sends its feedback
+function buildCheck(check) {
+  if (!check || document.getElementById('check')) return;
+  const box = document.createElement('section');
+  box.id = 'check';
+  box.className = 'check';
+  const h = document.createElement('h3');
+  h.textContent = 'Check:';
+  const q = document.createElement('p');
+  q.textContent = check.question;
+  box.append(h, q);
+  check.choices.forEach((text, i) => {
+    const b = document.createElement('button');
+    b.id = `check-choice-${i}`;
+    b.className = 'choice';
+    b.textContent = text;
+    b.addEventListener('click', () => send({ type: 'answer', choice: i }));
+    box.appendChild(b);
+  });
+  const fb = document.createElement('p');
+  fb.id = 'check-feedback';
+  box.appendChild(fb);
+  document.querySelector('main').appendChild(box);
+}
+
+function showFeedback(msg) {
+  lab.feedback = msg;
+  const fb = document.getElementById('check-feedback');
+  if (!fb) return;
+  fb.textContent = msg.message;
+  fb.className = msg.correct ? 'right' : 'wrong';
+  document.querySelectorAll('#check .choice').forEach((b, i) => {
+    b.classList.toggle('picked-right', msg.correct && i === msg.choice);
+    b.classList.toggle('picked-wrong', !msg.correct && i === msg.choice);
+  });
+}
+
 function applyState(msg) {
   lab.values = msg.values || {};
   lab.notices = msg.notices || [];
@@ -117,7 +183,17 @@ function applyState(msg) {
     d.textContent = n;
     noticesEl.appendChild(d);
   }
-  if (msg.bounds) view.setBounds(msg.bounds);
+  if (msg.bounds) { worldBounds = msg.bounds.slice(); view.setBounds(worldBounds); }
+  // only the rows that apply to the current settings are shown
+  const rows = new Set(msg.rows || scalarNames);
+  lab.rows = Array.from(rows);
+  for (const el of numbersEl.querySelectorAll('[data-row]')) el.hidden = !rows.has(el.dataset.row);
+  // controls that change nothing under the current settings are greyed out
+  lab.inactive = msg.inactive || [];
+  for (const name of Object.keys(paramsByName)) {
+    const input = document.getElementById(`ctl-${name}`);
+    if (input) input.disabled = lab.inactive.includes(name);
+  }
 }
 
 function onText(text) {
@@ -125,11 +201,14 @@ function onText(text) {
   if (msg.type === 'hello') {
     lab.hello = msg;
     scalarNames = msg.scalars || [];
-    buildNumbers(scalarNames);
+    buildNumbers(scalarNames, msg.labels);
     buildControls(msg.params || [], msg.actions || []);
+    buildCheck(msg.check);
     applyState(msg);
   } else if (msg.type === 'state') {
     applyState(msg);
+  } else if (msg.type === 'feedback') {
+    showFeedback(msg);
   } else if (msg.type === 'error') {
     lab.errors.push(msg.message);
     const d = document.createElement('div');
@@ -174,12 +253,15 @@ function draw() {
   if (!latest || latest.seq === drawnSeq) return;
   const t0 = performance.now();
   const s = latest.sections;
+  fitEstimate(s);
   view.clear();
   view.grid(s.GRID, s.GRDM);
   if (!s.GRID) view.segments(s.WALL, COLORS.wall, 2);
   view.dots(s.SCAN, COLORS.scan, 2);
   view.segments(s.GEDG, COLORS.graphEdge, 1);
   view.path(s.TPTH, COLORS.truePath, 2);
+  view.circle(s.RNGE, COLORS.range);
+  view.path(s.GHST, COLORS.ghost, 1.5, [2, 3]);
   view.path(s.EPTH, COLORS.estPath, 2, [6, 4]);
   view.crosses(s.TLMK, COLORS.trueLm, 4);
   if (s.OCOV) view.ellipses(s.OBSV, s.OCOV, COLORS.obsEllipse);
@@ -196,6 +278,7 @@ function draw() {
   view.robot(s.TPOS, COLORS.robot);
   view.robot(s.EPOS, COLORS.estRobot, 0.35);
   if (heatCanvas) drawHeat(heatCanvas, s.HEAT);
+  if (zoomCanvas) lab.zoom = drawParticleZoom(zoomCanvas, s.PART, s.TPOS);
   for (const [n, v] of Object.entries(lab.counters)) {
     const el = numbersEl.querySelector(`[data-num="${n}"]`);
     if (el) el.textContent = fmt(v);
