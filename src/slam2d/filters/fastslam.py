@@ -28,11 +28,11 @@ highest likelihood (the same likelihood that enters the weight), or starts a new
 below ``new_landmark_likelihood``. The gate probabilities of :class:`AssociationConfig` are not used here:
 per-particle ML is the textbook rule, and the threshold is the weight given to "new landmark".
 
-Existence counters (per-particle ML only; the map management of Probabilistic Robotics ch. 13): a landmark
-starts with evidence 2g, gains g per sighting and loses 1 per step in which it should have been seen (predicted
-inside 90% of the sensor's range and field of view) but was not; at 0 its slot is freed. g = round(1/p_d) with the
-sensor's detection probability p_d, so a sensor that reports few of the landmarks it sees keeps its map. With known
-association nothing is pruned.
+Landmark bookkeeping (per-particle ML only): each particle's landmarks are tracks of one batched
+:class:`~slam2d.association.tracks.LandmarkTracks` (M particles x K slots): tentative until sighted ``confirm_after``
+times, pruned (slot freed) after ``tentative_max_misses`` / ``confirmed_max_misses`` consecutive steps predicted
+well inside the view without a sighting, both limits scaled by 1/p_d -- the same rules as EKF-SLAM and graph SLAM.
+With known association every landmark is confirmed at its first sighting and nothing is pruned.
 
 Cost: FastSLAM 1.0 with known ids updates a scan's landmarks in one (M, k) batch; otherwise one vectorised
 iteration per observation. Per-particle ML looks once per step at every particle's whole map (a cheap O(M N)
@@ -68,7 +68,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from slam2d.association.base import AssociationConfig
+from slam2d.association.base import AssociationConfig, resolve_method
+from slam2d.association.tracks import LandmarkTracks, TrackConfig, in_view
 from slam2d.config import check_positive, check_probability
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, ParticleView
 from slam2d.geometry import se2
@@ -93,10 +94,6 @@ IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
 
 _LOG_2PI = math.log(2.0 * math.pi)
-#: evidence of a freshly created landmark (textbook counter 1, shifted by one so that 0 can mark an empty slot)
-_EVIDENCE_NEW = 2
-#: a landmark counts as "should have been seen" only inside this fraction of the sensor's range and field of view
-_MISS_MARGIN = 0.9
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -128,8 +125,20 @@ class FastSLAMConfig:
     """odometry noise assumed by the filter (filled from the log's metadata by the registry)."""
     sensor: SensorConfig = field(default_factory=SensorConfig)
     """range-bearing sensor assumed by the filter (filled from the log's metadata by the registry)."""
-    association: AssociationConfig = field(default_factory=AssociationConfig)
-    """method "known" uses the source's ids; any other method means per-particle maximum likelihood."""
+    association: AssociationConfig = field(default_factory=lambda: AssociationConfig(method="auto"))
+    """method "known" uses the source's ids; any other method means per-particle maximum likelihood. Default
+    ``auto``: known when the data carry ids (:func:`slam2d.association.resolve_method`)."""
+    confirm_after: int = 2
+    """per-particle ML: a landmark is tentative (not in the snapshot's map) until sighted this many times."""
+    tentative_max_misses: int = 3
+    """per-particle ML: a tentative landmark predicted well inside the view this many consecutive steps without a
+    sighting is pruned (0: never); divided by the sensor's detection_prob."""
+    confirmed_max_misses: int = 5
+    """the same for confirmed landmarks (0: never)."""
+    view_margin_m: float = 0.5
+    """"well inside the view": predicted range <= max_range_m - view_margin_m (and inside the field of view)."""
+    dynamic_test: bool = False
+    """per-particle ML: the tracks' persistence rule (a tentative landmark whose sightings drift is pruned)."""
 
     def __post_init__(self) -> None:
         if isinstance(self.particles, bool) or not isinstance(self.particles, int) or self.particles < 1:
@@ -144,6 +153,18 @@ class FastSLAMConfig:
         if not isinstance(self.initial_capacity, int) or self.initial_capacity < 1:
             raise ValueError(f"{type(self).__name__}.initial_capacity must be an integer >= 1 "
                              f"(got {self.initial_capacity!r})")
+        try:
+            self.tracks(known=False)
+        except ValueError as e:
+            raise ValueError(f"{type(self).__name__}.{e}") from None
+
+    def tracks(self, *, known: bool) -> TrackConfig:
+        """The track rules: with known ids every landmark is confirmed at once and never pruned."""
+        if known:
+            return TrackConfig(confirm_after=1, tentative_max_misses=0, confirmed_max_misses=0)
+        return TrackConfig(confirm_after=self.confirm_after, tentative_max_misses=self.tentative_max_misses,
+                           confirmed_max_misses=self.confirmed_max_misses, view_margin_m=self.view_margin_m,
+                           misses_per_sighting=self.sensor.misses_per_sighting, dynamic_test=self.dynamic_test)
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -162,20 +183,21 @@ class FastSLAM2Config(FastSLAMConfig):
 class ParticleSet:
     """All particles as stacked arrays (mutated in place by the filter; :meth:`select` returns independent copies).
 
-    Shapes: poses (M,3), log_weights (M,), lm_mean (M,K,2), lm_cov (M,K,2,2), lm_evidence (M,K) int (0: empty slot;
-    otherwise the existence counter), lm_count (M,) int (per-particle ML: the next free slot; slots are appended).
-    K is the capacity, not the number of landmarks.
+    Shapes: poses (M,3), log_weights (M,), lm_mean (M,K,2), lm_cov (M,K,2,2), lm_count (M,) int (per-particle ML:
+    the next free slot; slots are appended), tracks: the landmarks' bookkeeping, (M,K) (``tracks.hits == 0``: an
+    empty slot). K is the capacity, not the number of landmarks.
     """
 
     poses: Array
     log_weights: Array
     lm_mean: Array
     lm_cov: Array
-    lm_evidence: IntArray
     lm_count: IntArray
+    tracks: LandmarkTracks
 
     @staticmethod
-    def create(initial_pose: Array, particles: int, capacity: int) -> ParticleSet:
+    def create(initial_pose: Array, particles: int, capacity: int,
+               tracks: TrackConfig | None = None) -> ParticleSet:
         """``particles`` copies of ``initial_pose`` with uniform weights and empty maps."""
         if particles < 1:
             raise ValueError(f"FastSLAM needs at least one particle (got {particles})")
@@ -185,8 +207,8 @@ class ParticleSet:
             log_weights=np.full(m, -math.log(m)),
             lm_mean=np.zeros((m, k, 2)),
             lm_cov=np.zeros((m, k, 2, 2)),
-            lm_evidence=np.zeros((m, k), dtype=np.int64),
             lm_count=np.zeros(m, dtype=np.int64),
+            tracks=LandmarkTracks(tracks, m, k),
         )
 
     @property
@@ -205,8 +227,8 @@ class ParticleSet:
             log_weights=self.log_weights[idx],
             lm_mean=self.lm_mean[idx],
             lm_cov=self.lm_cov[idx],
-            lm_evidence=self.lm_evidence[idx],
             lm_count=self.lm_count[idx],
+            tracks=self.tracks.select(idx),
         )
 
     def ensure_capacity(self, needed: int) -> None:
@@ -224,7 +246,7 @@ class ParticleSet:
 
         self.lm_mean = grow(self.lm_mean)
         self.lm_cov = grow(self.lm_cov)
-        self.lm_evidence = grow(self.lm_evidence)
+        self.tracks.grow(new_k)
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -464,14 +486,21 @@ class FastSLAM(EstimatorLifecycle):
         self._n_eff = 0.0
         self._resampled = False
         self._weight_resets = 0
-        self._assoc = np.zeros(0, dtype=np.int64)
+        self._assoc_out = np.zeros(0, dtype=np.int64)
         self._r = self.config.sensor.covariance
+        self._assoc = self.config.association
+        self._t = 0
         #: FastSLAM 1.0 with known ids updates a scan's landmarks in one batch (tests switch it off to compare)
         self._batch_known = True
 
     @property
     def known(self) -> bool:
-        return self.config.association.method == "known"
+        return self._assoc.method == "known"
+
+    @property
+    def association_method(self) -> str:
+        """The association method in use (``auto`` until the first step with observations resolves it)."""
+        return self._assoc.method
 
     @property
     def particles(self) -> ParticleSet:
@@ -484,7 +513,9 @@ class FastSLAM(EstimatorLifecycle):
         pose = np.asarray(initial_pose, dtype=np.float64)
         if pose.shape != (3,) or not np.all(np.isfinite(pose)):
             raise ValueError(f"initial_pose must be a finite (3,) array (got {initial_pose!r})")
-        self._p = ParticleSet.create(pose, self.config.particles, self.config.initial_capacity)
+        self._assoc = self.config.association
+        self._p = ParticleSet.create(pose, self.config.particles, self.config.initial_capacity,
+                                     self.config.tracks(known=self.known))
         self._rng = rng
         self._r = self.config.sensor.covariance
         self._id_to_slot, self._slot_ids = {}, []
@@ -493,7 +524,7 @@ class FastSLAM(EstimatorLifecycle):
         self._n_eff = float(self.config.particles)
         self._resampled = False
         self._weight_resets = 0
-        self._assoc = np.zeros(0, dtype=np.int64)
+        self._assoc_out = np.zeros(0, dtype=np.int64)
         self._lifecycle_reset()
 
     # -- association ---------------------------------------------------------------------------------------------
@@ -513,7 +544,7 @@ class FastSLAM(EstimatorLifecycle):
         used = int(p.lm_count.max())  # per-particle ML appends slots: nothing lives beyond the longest map
         dx = p.lm_mean[:, :used, 0] - poses[:, 0:1]
         dy = p.lm_mean[:, :used, 1] - poses[:, 1:2]
-        near = (p.lm_evidence[:, :used] > 0) & (dx * dx + dy * dy <= radius * radius)
+        near = (p.tracks.hits[:, :used] > 0) & (dx * dx + dy * dy <= radius * radius)
         rows, cols = np.nonzero(near)
         counts = np.bincount(rows, minlength=p.size)
         v = int(counts.max()) if counts.size else 0
@@ -576,7 +607,7 @@ class FastSLAM(EstimatorLifecycle):
         p = self.particles
         if self.known:
             slot = self._slot_for_id(lm_id)
-            return np.full(p.size, slot, dtype=np.int64), p.lm_evidence[:, slot] == 0
+            return np.full(p.size, slot, dtype=np.int64), p.tracks.hits[:, slot] == 0
         c, is_new = self._ml_associate(poses, pose_cov, z, cand, valid)
         if np.any(is_new):
             p.ensure_capacity(int(p.lm_count.max()) + 1)
@@ -597,9 +628,20 @@ class FastSLAM(EstimatorLifecycle):
             mu[is_new], sig[is_new] = mu0, sig0
         p.lm_mean[rows, c] = mu
         p.lm_cov[rows, c] = sig
-        gain = self._evidence_gain
-        p.lm_evidence[rows, c] = np.where(is_new, _EVIDENCE_NEW * gain, p.lm_evidence[rows, c] + gain)
+        self._track(poses, z, rows, c, is_new)
         return ll
+
+    def _track(self, poses: Array, z: Array, rows: IntArray, c: IntArray, is_new: BoolArray) -> None:
+        """Start (``is_new``) or sight the tracks (rows, c) with observation z (2,) or (n,2) taken at poses (n,3)."""
+        tracks = self.particles.tracks
+        pts: Array | None = None
+        covs: Array | None = None
+        if tracks.config.dynamic_test:
+            pts, covs = landmark_init(poses, z, self._r)
+        for sel in (is_new, ~is_new):
+            if sel.any():
+                part = (None, None) if pts is None or covs is None else (pts[sel], covs[sel])
+                (tracks.start if sel is is_new else tracks.sight)(c[sel], self._t, *part, rows=rows[sel])
 
     # -- one step ------------------------------------------------------------------------------------------------
 
@@ -614,6 +656,10 @@ class FastSLAM(EstimatorLifecycle):
             raise ValueError(f"step {step.index}: odometry must be a finite (3,) array (got {step.odometry!r})")
         if not np.all(np.isfinite(z_all)):
             raise ValueError(f"step {step.index}: observations contain non-finite range or bearing")
+        self._t = step.index
+        if self._assoc.method == "auto" and len(obs):
+            self._assoc = resolve_method(self._assoc, bool(np.any(obs.landmark_id >= 0)))
+            p.tracks.config = self.config.tracks(known=self.known)
         ids = np.asarray(obs.landmark_id, dtype=np.int64)
         use = np.flatnonzero(ids >= 0) if self.known else np.arange(len(obs))
         m = p.size
@@ -641,15 +687,17 @@ class FastSLAM(EstimatorLifecycle):
             # landmarks at once, (M, k) in one go (the loop below gives the same numbers, with more overhead)
             slots = np.array([self._slot_for_id(int(i)) for i in ids[use]], dtype=np.int64)
             z_use = z_all[use]
-            is_new = p.lm_evidence[:, slots] == 0
+            is_new = p.tracks.hits[:, slots] == 0
             mu, sig, ll = landmark_update(poses[:, None, :], z_use, p.lm_mean[:, slots], p.lm_cov[:, slots], r)
             if is_new.any():
                 mu0, sig0 = landmark_init(np.broadcast_to(poses[:, None, :], (*is_new.shape, 3)), z_use, r)
                 mu[is_new], sig[is_new] = mu0[is_new], sig0[is_new]
             p.lm_mean[:, slots] = mu
             p.lm_cov[:, slots] = sig
-            gain = self._evidence_gain
-            p.lm_evidence[:, slots] = np.where(is_new, _EVIDENCE_NEW * gain, p.lm_evidence[:, slots] + gain)
+            grid_rows, grid_slots = np.broadcast_to(rows[:, None], is_new.shape), np.broadcast_to(slots, is_new.shape)
+            self._track(np.broadcast_to(poses[:, None, :], (*is_new.shape, 3)).reshape(-1, 3),
+                        np.broadcast_to(z_use, (*is_new.shape, 2)).reshape(-1, 2), grid_rows.reshape(-1),
+                        grid_slots.reshape(-1), is_new.reshape(-1))
             dlogw += np.where(is_new, log_p0, ll).sum(axis=1)
             assoc_slots[use] = slots[:, None]
         elif cfg.version == 1:
@@ -683,11 +731,11 @@ class FastSLAM(EstimatorLifecycle):
             poses = sample_gaussian_poses(poses, pose_cov, self._rng)
             # landmark EKFs at the drawn pose, in the order the observations were incorporated
             for jj, c, is_new in decisions:
-                self._update_landmarks(poses, z_all[jj], c, is_new & (p.lm_evidence[rows, c] == 0))
+                self._update_landmarks(poses, z_all[jj], c, is_new & (p.tracks.hits[rows, c] == 0))
         p.poses = poses
 
         if not self.known:
-            self._count_misses(cand, valid, assoc_slots[use])
+            self._count_misses(cand, valid)
 
         lw, degenerate = normalize_log_weights(p.log_weights + dlogw)
         if degenerate:
@@ -706,33 +754,27 @@ class FastSLAM(EstimatorLifecycle):
         else:
             p.log_weights = lw
         self._best = best
-        self._assoc = np.full(len(obs), -1, dtype=np.int64)
+        self._assoc_out = np.full(len(obs), -1, dtype=np.int64)
         shown = assoc_slots[:, best]
         for j in np.flatnonzero(shown >= 0):
-            self._assoc[j] = self._slot_ids[shown[j]] if self.known else shown[j]
+            self._assoc_out[j] = self._slot_ids[shown[j]] if self.known else shown[j]
 
-    @property
-    def _evidence_gain(self) -> int:
-        """Evidence a sighting adds: 1/p_d misses, so a sensor that rarely reports what it sees (p_d small) does not
-        make its landmarks vanish between sightings."""
-        return max(1, round(self.config.sensor.misses_per_sighting))
+    def _count_misses(self, cand: IntArray, valid: BoolArray) -> None:
+        """One more miss for each landmark predicted well inside the sensor's view and not sighted this step, then
+        free the slots the tracks prune (their stale means stay; ``hits == 0`` marks them empty).
 
-    def _count_misses(self, cand: IntArray, valid: BoolArray, observed: IntArray) -> None:
-        """Existence counters: -1 for each landmark predicted well inside the sensor's view and not
-        observed this step; a counter reaching 0 frees the slot (its stale mean stays; evidence 0 marks it empty).
-
-        Shapes: cand/valid (M,V) the landmarks near each particle (a superset of those in view), observed (k,M)."""
+        Shapes: cand/valid (M,V) the landmarks near each particle (a superset of those in view)."""
         p = self.particles
         if cand.shape[1] == 0:
             return
         sensor = self.config.sensor
-        rows = np.arange(p.size)[:, None]
+        rows = np.broadcast_to(np.arange(p.size)[:, None], cand.shape)
         z_hat = range_bearing(p.poses[:, None, :], p.lm_mean[rows, cand])
-        in_view = valid & (p.lm_evidence[rows, cand] > 0) & (z_hat[..., 0] <= _MISS_MARGIN * sensor.max_range_m) & (
-            np.abs(z_hat[..., 1]) <= _MISS_MARGIN * 0.5 * sensor.fov_rad)
-        if observed.size:
-            in_view &= ~np.any(cand[None, :, :] == observed[:, :, None], axis=0)
-        np.subtract.at(p.lm_evidence, (np.broadcast_to(rows, cand.shape)[in_view], cand[in_view]), 1)
+        view = valid & in_view(z_hat, sensor.max_range_m, sensor.fov_rad, p.tracks.config.view_margin_m)
+        mask = np.zeros(p.tracks.hits.shape, dtype=bool)
+        mask[rows[view], cand[view]] = True
+        p.tracks.miss(mask, self._t)
+        p.tracks.free(p.tracks.prune_mask())
 
     # -- snapshot ------------------------------------------------------------------------------------------------
 
@@ -743,7 +785,8 @@ class FastSLAM(EstimatorLifecycle):
         self._check_ready()
         p = self.particles
         b = self._best
-        slots = np.flatnonzero(p.lm_evidence[b] > 0)
+        slots = np.flatnonzero(p.tracks.confirmed[b])
+        tent = np.flatnonzero(p.tracks.tentative[b])
         if self.known:
             ids = np.asarray(self._slot_ids, dtype=np.int64)[slots] if slots.size else np.zeros(0, dtype=np.int64)
         else:
@@ -756,7 +799,9 @@ class FastSLAM(EstimatorLifecycle):
             landmark_covs=p.lm_cov[b, slots].copy(),
             landmark_ids=ids,
             state_dim=3 + 2 * int(slots.size),
-            association=self._assoc.copy(),
+            association=self._assoc_out.copy(),
+            tentative_landmarks=p.lm_mean[b, tent].copy(),
+            tentative_ids=tent.astype(np.int64),
             particles=ParticleView(p.poses.copy(), w, float(self._n_eff), bool(self._resampled)),
             diagnostics=Diagnostics(weight_resets=self._weight_resets),
         )
