@@ -28,7 +28,7 @@ CLUTTER = -2
 METHODS = ("known", "nn", "mahalanobis", "jcbb", "ransac")
 
 #: what ``auto`` becomes on data without landmark ids (measured on MRCLAM robots 1-3 with the ids withheld)
-AUTO_WITHOUT_IDS = "mahalanobis"
+AUTO_WITHOUT_IDS: Literal["mahalanobis"] = "mahalanobis"
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -90,7 +90,7 @@ def resolve_method(config: AssociationConfig, has_ids: bool) -> AssociationConfi
     """
     if config.method != "auto":
         return config
-    return replace(config, method="known" if has_ids else AUTO_WITHOUT_IDS)
+    return replace(config, method="known") if has_ids else replace(config, method=AUTO_WITHOUT_IDS)
 
 
 @dataclass(frozen=True)
