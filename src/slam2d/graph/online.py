@@ -183,6 +183,11 @@ class GraphSLAM(EstimatorLifecycle):
         self._lifecycle_reset()
 
     @property
+    def association_method(self) -> str:
+        """The association method in use (``auto`` until the first step with observations resolves it)."""
+        return self._assoc.method
+
+    @property
     def pose_cov(self) -> Array:
         """Marginal covariance of the newest pose (3x3): last optimisation + odometry since."""
         return self.belief.pose_cov
