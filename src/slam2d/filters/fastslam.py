@@ -197,6 +197,10 @@ def weighted_pose_stats(poses: Array, weights: Array) -> tuple[Array, Array]:
 # the estimator
 
 
+def _part(pts: Array | None, covs: Array | None, sel: BoolArray) -> tuple[Array | None, Array | None]:
+    return (None, None) if pts is None or covs is None else (pts[sel], covs[sel])
+
+
 class FastSLAM(EstimatorLifecycle):
     """FastSLAM 1.0 / 2.0 over range-bearing landmarks (implements the estimator protocol)."""
 
@@ -360,14 +364,12 @@ class FastSLAM(EstimatorLifecycle):
     def _track(self, poses: Array, z: Array, rows: IntArray, c: IntArray, is_new: BoolArray) -> None:
         """Start (``is_new``) or sight the tracks (rows, c) with observation z (2,) or (n,2) taken at poses (n,3)."""
         tracks = self.particles.tracks
-        pts: Array | None = None
-        covs: Array | None = None
-        if tracks.config.dynamic_test:
-            pts, covs = landmark_init(poses, z, self._r)
-        for sel in (is_new, ~is_new):
-            if sel.any():
-                part = (None, None) if pts is None or covs is None else (pts[sel], covs[sel])
-                (tracks.start if sel is is_new else tracks.sight)(c[sel], self._t, *part, rows=rows[sel])
+        pts, covs = landmark_init(poses, z, self._r) if tracks.config.dynamic_test else (None, None)
+        new, old = is_new, ~is_new
+        if new.any():
+            tracks.start(c[new], self._t, *_part(pts, covs, new), rows=rows[new])
+        if old.any():
+            tracks.sight(c[old], self._t, *_part(pts, covs, old), rows=rows[old])
 
     # -- one step ------------------------------------------------------------------------------------------------
 
