@@ -175,3 +175,30 @@ def test_batch_axis_equals_m_independent_runs(rng: np.random.Generator) -> None:
     for i, one in enumerate(singles):
         for name in ("hits", "misses", "first_step", "last_step", "dynamic", "w", "wz", "zwz", "wt", "wtt", "wtz"):
             np.testing.assert_array_equal(getattr(batch, name)[i], getattr(one, name)[0], err_msg=name)
+
+
+@pytest.mark.parametrize("name", ["ekf", "fastslam", "graph"])
+def test_back_ends_keep_a_slowly_moving_object_out_with_the_persistence_rule(name: str) -> None:
+    from slam2d.lab.registry import make_estimator
+    from slam2d.log import Observations, Step
+
+    confirmed = {}
+    for dyn in (False, True):
+        rng = np.random.default_rng(4)
+        # the filter assumes 5 cm / 25 mrad noise (the data have 1 cm / 5 mrad): the object creeping 2 cm per step
+        # stays inside the association gate, so only the persistence rule can tell it from a post
+        over = {"association.method": "mahalanobis", "dynamic_test": dyn, "confirm_after": 12,
+                "sensor.range_std_m": 0.05, "sensor.bearing_std_rad": 0.025}
+        if name == "fastslam":
+            over["particles"] = 5
+        est = make_estimator(name, over)
+        est.reset(np.zeros(3), rng=np.random.default_rng(0))
+        for t in range(1, 40):
+            pts = np.array([[3.0, 0.0], [0.0, 2.0 + 0.02 * t]])  # a post, and the creeping object
+            r = np.hypot(*pts.T) + rng.normal(0, 0.01, 2)
+            b = np.arctan2(pts[:, 1], pts[:, 0]) + rng.normal(0, 0.005, 2)
+            est.step(Step(index=t, time_s=0.1 * t, dt_s=0.1, odometry=np.zeros(3),
+                          observations=Observations(r, b, np.array([-1, -1]))))
+        confirmed[dyn] = est.estimate().landmarks
+    assert len(confirmed[False]) == 2, confirmed  # without the rule the creeping object becomes a landmark
+    assert len(confirmed[True]) == 1 and np.hypot(*(confirmed[True][0] - [3.0, 0.0])) < 0.1, confirmed
