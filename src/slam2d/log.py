@@ -76,11 +76,23 @@ class Scan:
 
 
 @dataclass(frozen=True)
+class MarkerReadings:
+    """Floor markers read by the downward camera at one pose. Shapes: xy_m (K,2) in the robot frame, ids (K,) int."""
+
+    xy_m: Array
+    ids: IntArray
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+
+@dataclass(frozen=True)
 class Step:
     """Everything an estimator may see at step ``index``: odometry and the measurements at the new pose.
 
     ``odometry`` is the measured relative motion [dx, dy, dtheta] from pose index-1 to pose index, in the frame of
-    pose index-1. ``gps`` is a measured [x, y] or None. ``scan`` is a lidar scan or None.
+    pose index-1. ``gps`` is a measured [x, y] or None. ``scan`` is a lidar scan or None. ``markers`` holds the
+    floor-marker readings of this step (possibly none) when the source has a floor camera, else None.
     """
 
     index: int
@@ -90,6 +102,7 @@ class Step:
     observations: Observations
     gps: Array | None = None
     scan: Scan | None = None
+    markers: MarkerReadings | None = None
 
 
 _ARRAY_FIELDS = (
@@ -110,6 +123,10 @@ _ARRAY_FIELDS = (
     "scan_ranges_m",
     "scan_angles_rad",
     "dynamic_xy",
+    "marker_step",
+    "marker_xy_m",
+    "marker_id",
+    "true_markers",
 )
 
 
@@ -121,7 +138,9 @@ class Log:
     stamps_s (T+1,), odometry (T,3), obs_step (K,) int sorted, obs_range_m (K,), obs_bearing_rad (K,), obs_id (K,) int,
     obs_descriptor (K,D) or None, true_poses (T+1,3) or None, true_landmarks (N,2) or None, true_landmark_ids (N,)
     or None, walls (W,4) [x0,y0,x1,y1] or None, gps_step (G,), gps_xy (G,2), scan_step (S,), scan_ranges_m (S,B),
-    scan_angles_rad (B,), dynamic_xy (T+1,M,2) true positions of moving objects or None.
+    scan_angles_rad (B,), dynamic_xy (T+1,M,2) true positions of moving objects or None. Floor-marker readings
+    (R of them, optional together): marker_step (R,) int sorted, marker_xy_m (R,2) robot frame, marker_id (R,) int;
+    true_markers (N_m,2) marker ``i`` has id ``i``.
     ``metadata`` is JSON-serialisable: seed, scenario, config, sensor parameters, units, source.
     """
 
@@ -144,6 +163,10 @@ class Log:
     scan_angles_rad: Array | None = None
     scan_max_range_m: float = 0.0
     dynamic_xy: Array | None = None
+    marker_step: IntArray | None = None
+    marker_xy_m: Array | None = None
+    marker_id: IntArray | None = None
+    true_markers: Array | None = None
     metadata: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -166,6 +189,16 @@ class Log:
             object.__setattr__(self, "_gps_index", {int(s): i for i, s in enumerate(self.gps_step)})
         if self.scan_step is not None:
             object.__setattr__(self, "_scan_index", {int(s): i for i, s in enumerate(self.scan_step)})
+        m_step, m_xy, m_id = self.marker_step, self.marker_xy_m, self.marker_id
+        if m_step is not None or m_xy is not None or m_id is not None:
+            if m_step is None or m_xy is None or m_id is None:
+                raise ValueError("marker_step, marker_xy_m and marker_id must be given together")
+            r = m_step.shape[0]
+            if m_xy.shape != (r, 2) or m_id.shape != (r,):
+                raise ValueError(f"marker_xy_m must have shape ({r}, 2) and marker_id ({r},)")
+            if r and np.any(np.diff(m_step) < 0):
+                raise ValueError("marker_step must be sorted")
+            object.__setattr__(self, "_marker_starts", np.searchsorted(m_step, np.arange(t + 2)))
 
     # ------------------------------------------------------------------ access
     @property
@@ -199,6 +232,11 @@ class Log:
             i = self._scan_index.get(index)  # type: ignore[attr-defined]
             if i is not None:
                 scan = Scan(self.scan_ranges_m[i], self.scan_angles_rad, self.scan_max_range_m)
+        markers = None
+        if self.marker_step is not None and self.marker_xy_m is not None and self.marker_id is not None:
+            starts = self._marker_starts  # type: ignore[attr-defined]
+            sl = slice(int(starts[index]), int(starts[index + 1]))
+            markers = MarkerReadings(self.marker_xy_m[sl], self.marker_id[sl])
         return Step(
             index=index,
             time_s=float(self.stamps_s[index]),
@@ -207,6 +245,7 @@ class Log:
             observations=self.observations_at(index),
             gps=gps,
             scan=scan,
+            markers=markers,
         )
 
     def __iter__(self) -> Iterator[Step]:
@@ -223,6 +262,7 @@ class Log:
 
         keep_g = None if self.gps_step is None else self.gps_step <= steps
         keep_s = None if self.scan_step is None else self.scan_step <= steps
+        keep_m = None if self.marker_step is None else self.marker_step <= steps
         return dataclasses.replace(
             self,
             stamps_s=self.stamps_s[: steps + 1],
@@ -238,6 +278,9 @@ class Log:
             scan_step=None if keep_s is None else self.scan_step[keep_s],  # type: ignore[index]
             scan_ranges_m=None if keep_s is None or self.scan_ranges_m is None else self.scan_ranges_m[keep_s],
             dynamic_xy=cut(self.dynamic_xy, lambda n: slice(0, n), steps + 1),
+            marker_step=None if keep_m is None else self.marker_step[keep_m],  # type: ignore[index]
+            marker_xy_m=None if keep_m is None else self.marker_xy_m[keep_m],  # type: ignore[index]
+            marker_id=None if keep_m is None else self.marker_id[keep_m],  # type: ignore[index]
         )
 
     # ------------------------------------------------------------------ persistence

@@ -4,7 +4,6 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-import slam2d.models  # noqa: F401  (registers the model Jacobians)
 from slam2d import _jacobians
 from slam2d.geometry import (
     angle_diff,
@@ -21,6 +20,7 @@ from slam2d.geometry import (
     se2,
     transform_points,
     wrap_angle,
+    wrap_angle_scalar,
 )
 from slam2d.testing import assert_jacobian_matches, numerical_jacobian
 
@@ -53,6 +53,12 @@ def test_registered_jacobians_match_finite_differences(pair, edge):
             angles = _jacobians.ARG_KINDS[kind][1]
             assert_jacobian_matches(f, args[i], analytic[i], input_angles=angles, output_angles=pair.output_angles,
                                     rtol=1e-5, atol=1e-6)
+
+
+def test_scalar_wrap_equals_wrap_angle():
+    edges = [np.pi, -np.pi, np.nextafter(np.pi, 0), np.nextafter(-np.pi, -np.inf), 3 * np.pi, -3 * np.pi, 0.0, -0.0]
+    a = np.concatenate([edges, np.random.default_rng(2).uniform(-50, 50, 2000)])
+    np.testing.assert_array_equal([wrap_angle_scalar(float(x)) for x in a], wrap_angle(a))
 
 
 def test_wrap_angle_boundaries_are_pinned():

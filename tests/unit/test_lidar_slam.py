@@ -10,7 +10,8 @@ import pytest
 
 from conftest import dataset_path
 from slam2d.cli.main import main
-from slam2d.frontend.lidar_slam import (
+from slam2d.geometry import se2
+from slam2d.graph.lidar_slam import (
     LidarSlamConfig,
     PoseGraphEdges,
     interpolate_poses,
@@ -18,7 +19,6 @@ from slam2d.frontend.lidar_slam import (
     run_lidar_slam,
     solve_pose_graph,
 )
-from slam2d.geometry import se2
 from slam2d.io.carmen import read_carmen, read_relations
 from slam2d.sim import simulate
 

@@ -12,3 +12,5 @@ from slam2d.association.base import resolve_method as resolve_method
 from slam2d.association.gating import gate_thresholds as gate_thresholds
 from slam2d.association.gating import joint_thresholds as joint_thresholds
 from slam2d.association.predict import candidates_from_belief as candidates_from_belief
+from slam2d.association.predict import innovation_covariance as innovation_covariance
+from slam2d.association.predict import joint_innovation_covariance as joint_innovation_covariance

@@ -1,6 +1,9 @@
-"""Build :class:`Candidates` from a Gaussian belief over [pose, landmarks] (what an EKF holds, or a pose belief plus
-a landmark map): predicted range-bearing measurements and their joint innovation covariance
-``S_joint = H P H^T + I (x) R``, with the Jacobians of :func:`slam2d.models.sensors.range_bearing`.
+"""Innovation covariances of landmark measurements, and :class:`Candidates` built from a Gaussian belief over
+[pose, landmarks] (what an EKF holds, or a pose belief plus a landmark map).
+
+:func:`innovation_covariance` is the one builder of ``S = H P H^T + R`` (per landmark) and of the joint
+``S_joint = H P H^T + I (x) R`` (all candidates together, with their cross-covariances) used by EKF-SLAM, the online
+graph's candidates, the association experiments and the web lab.
 """
 
 from __future__ import annotations
@@ -41,19 +44,7 @@ def candidates_from_belief(
         raise ValueError(f"sensor_cov must have shape (2, 2), got {r.shape}")
     z_pred = range_bearing(pose, lm)
     hp, hl = range_bearing_jacobians(np.broadcast_to(pose, (n, 3)), lm)  # (L,2,3), (L,2,2)
-    pxx = cov[:3, :3]
-    pxl = cov[:3, 3:].reshape(3, n, 2)
-    pll = cov[3:, 3:].reshape(n, 2, n, 2)
-    # H = [Hp | blockdiag(Hl)], so every term is a block product; einsum keeps it O(L^2) without forming H
-    a = np.einsum("iap,pq,jbq->iajb", hp, pxx, hp)
-    b = np.einsum("iap,pjq,jbq->iajb", hp, pxl, hl)
-    c = np.einsum("iap,ipjq,jbq->iajb", hl, pll, hl)
-    s_joint = (a + b + b.transpose(2, 3, 0, 1) + c).reshape(2 * n, 2 * n)
-    s_joint[np.arange(2 * n), np.arange(2 * n)] += np.tile(np.diag(r), n)
-    s_joint[np.arange(0, 2 * n, 2), np.arange(1, 2 * n, 2)] += r[0, 1]
-    s_joint[np.arange(1, 2 * n, 2), np.arange(0, 2 * n, 2)] += r[1, 0]
-    s_joint = 0.5 * (s_joint + s_joint.T)
-    s = s_joint.reshape(n, 2, n, 2)[np.arange(n), :, np.arange(n), :].copy()
+    s, s_joint = joint_innovation_covariance(hp, hl, cov, 3 + 2 * np.arange(n)[:, None] + np.arange(2), r)
     return Candidates(
         ids=np.asarray(ids, dtype=np.int64).reshape(n),
         z_pred=z_pred.reshape(n, 2),
@@ -61,3 +52,45 @@ def candidates_from_belief(
         S_joint=s_joint,
         descriptors=None if descriptors is None else np.asarray(descriptors, dtype=np.float64).reshape(n, -1),
     )
+
+
+def innovation_covariance(hp: ArrayLike, hl: ArrayLike, cov: ArrayLike, rows: ArrayLike | None,
+                          r: ArrayLike) -> Array:
+    """Innovation covariance ``S_i = H_i P H_i^T + r`` of each of L measurements ``z_i = h(pose, l_i) + v_i``.
+
+    ``hp`` (L,m,3) and ``hl`` (L,m,2) are dh/dpose and dh/dl_i; ``cov`` (n,n) is any covariance whose rows 0..2 are
+    the pose and whose rows ``rows[i]`` (L,2) are landmark i (an EKF's whole P, or a joint block); ``r`` (m,m) the
+    measurement noise. ``rows=None`` means the landmarks are known exactly (only the pose is uncertain). Reads O(L)
+    entries of ``cov``. Returns (L,m,m).
+    """
+    hp, hl, cov, r = (np.asarray(a, dtype=np.float64) for a in (hp, hl, cov, r))
+    s = np.einsum("iab,bc,idc->iad", hp, cov[:3, :3], hp) + r
+    if rows is not None:
+        idx = np.asarray(rows, dtype=np.int64).reshape(hp.shape[0], 2)
+        t_pl = np.einsum("iab,bic,idc->iad", hp, cov[:3][:, idx], hl)
+        p_ll = cov[idx[:, :, None], idx[:, None, :]]  # (L,2,2) diagonal blocks
+        s = s + t_pl + np.swapaxes(t_pl, 1, 2) + np.einsum("iab,ibc,idc->iad", hl, p_ll, hl)
+    return 0.5 * (s + np.swapaxes(s, 1, 2))
+
+
+def joint_innovation_covariance(hp: ArrayLike, hl: ArrayLike, cov: ArrayLike, rows: ArrayLike | None,
+                                r: ArrayLike) -> tuple[Array, Array]:
+    """``(S, S_joint)``: :func:`innovation_covariance` and the joint ``S_joint = H P H^T + I (x) r`` (Lm,Lm) of all L
+    measurements together (their cross-covariances through the shared pose and correlated landmarks), with
+    H = [hp | blockdiag(hl)] never formed. Same arguments; reads O(L^2) entries of ``cov``.
+    """
+    hp, hl, cov = (np.asarray(a, dtype=np.float64) for a in (hp, hl, cov))
+    n, m = hp.shape[0], hp.shape[1]
+    s = innovation_covariance(hp, hl, cov, rows, r)
+    p_pp = cov[:3, :3]
+    sj = np.einsum("iab,bc,jdc->iajd", hp, p_pp, hp)
+    if rows is not None:
+        idx = np.asarray(rows, dtype=np.int64).reshape(n, 2)
+        flat = idx.reshape(-1)
+        cross = np.einsum("iab,bjc,jdc->iajd", hp, cov[:3][:, idx], hl)
+        p_ll = cov[np.ix_(flat, flat)].reshape(n, 2, n, 2)
+        sj = sj + cross + cross.transpose(2, 3, 0, 1) + np.einsum("iab,ibjc,jdc->iajd", hl, p_ll, hl)
+    ar = np.arange(n)
+    sj[ar, :, ar, :] = s  # diagonal blocks: the per-measurement S, which carry the noise r
+    sj = sj.reshape(n * m, n * m)
+    return s, 0.5 * (sj + sj.T)

@@ -59,7 +59,7 @@ def cmd(args: argparse.Namespace) -> int:
     import numpy as np
 
     from slam2d.config import with_overrides
-    from slam2d.frontend.lidar_slam import LidarSlamConfig, relation_errors, run_lidar_slam
+    from slam2d.graph.lidar_slam import LidarSlamConfig, relation_errors, run_lidar_slam
     from slam2d.io.carmen import read_carmen, read_relations
     from slam2d.maps.occupancy import (
         OccupancyConfig,

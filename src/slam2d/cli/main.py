@@ -23,6 +23,7 @@ COMMANDS = [
     "slam2d.cli.lab",
     "slam2d.cli.exercise",
     "slam2d.cli.lidar",
+    "slam2d.cli.map",
 ]
 
 

@@ -29,11 +29,11 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.linalg import blas
 
-from slam2d import _jacobians
 from slam2d.association import AssociationConfig, AssociationResult, Candidates, associate
-from slam2d.geometry.angles import wrap_angle
+from slam2d.association.predict import innovation_covariance, joint_innovation_covariance
+from slam2d.geometry.angles import wrap_angle, wrap_angle_scalar
 from slam2d.log import Observations
-from slam2d.models.motion import MotionNoise
+from slam2d.models.motion import MotionNoise, odometry_covariance_scalar, odometry_scalar
 from slam2d.models.sensors import (
     absolute_position,
     absolute_position_jacobians,
@@ -41,6 +41,7 @@ from slam2d.models.sensors import (
     range_bearing_inverse,
     range_bearing_inverse_jacobians,
     range_bearing_jacobians,
+    range_bearing_scalar,
 )
 
 Array = NDArray[np.float64]
@@ -127,50 +128,6 @@ def ekf_predict_linearized(mu: Array, P: Array, pose_new: Array, G: Array, Q_pos
     return mu, P
 
 
-def odometry_scalar(pose: Array, u: Array) -> tuple[Array, Array, Array]:
-    """``pose (+) u`` and its Jacobians ``G = d/d pose``, ``V = d/d u`` (3,3) in scalar arithmetic.
-
-    Twin of ``models.motion.odometry_predict(_jacobians)`` without the batched-array overheads (this runs once per
-    step); its Jacobians are registered for the finite-difference check.
-    """
-    x, y, th = float(pose[0]), float(pose[1]), float(pose[2])
-    dx, dy, dth = float(u[0]), float(u[1]), float(u[2])
-    c, s = math.cos(th), math.sin(th)
-    new = np.array([x + c * dx - s * dy, y + s * dx + c * dy, _wrap(th + dth)])
-    G = np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
-    V = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return new, G, V
-
-
-def _odometry_scalar_value(pose: Array, u: Array) -> Array:
-    return odometry_scalar(pose, u)[0]
-
-
-def _odometry_scalar_jacobians(pose: Array, u: Array) -> tuple[Array, Array]:
-    _, G, V = odometry_scalar(pose, u)
-    return G, V
-
-
-_jacobians.register(_odometry_scalar_value, _odometry_scalar_jacobians, ("pose", "odometry"), (2,),
-                    name="slam2d.filters.ekf_slam.odometry_scalar")
-
-
-def odometry_covariance_scalar(u: Array, noise: MotionNoise) -> Array:
-    """Scalar twin of ``models.motion.odometry_covariance`` (covariance of u in [dx, dy, dtheta]); a test checks
-    that the two agree."""
-    dx, dy, dth = float(u[0]), float(u[1]), float(u[2])
-    t = math.hypot(dx, dy)
-    r1 = math.atan2(dy, dx) if t > 1e-9 else 0.0
-    r2 = _wrap(dth - r1)
-    r1w = _wrap(r1)
-    v1 = noise.alpha_rot_rot * r1w**2 + noise.alpha_rot_trans * t**2 + noise.min_rot_std_rad**2
-    vt = noise.alpha_trans_trans * t**2 + noise.alpha_trans_rot * (r1w**2 + r2**2) + noise.min_trans_std_m**2
-    v2 = noise.alpha_rot_rot * r2**2 + noise.alpha_rot_trans * t**2 + noise.min_rot_std_rad**2
-    c, s = math.cos(r1), math.sin(r1)
-    J = np.array([[-t * s, c, 0.0], [t * c, s, 0.0], [1.0, 0.0, 1.0]])  # d[dx,dy,dth]/d[rot1,trans,rot2]
-    return (J * np.array([v1, vt, v2])) @ J.T
-
-
 def ekf_predict(mu: Array, P: Array, u: Array, noise: MotionNoise, *, inplace: bool = False) -> tuple[Array, Array]:
     """Odometry prediction ``x <- x (+) u`` with ``Q = V Q_u V^T`` (Probabilistic Robotics sec. 10.2).
 
@@ -250,7 +207,7 @@ def ekf_update(mu: Array, P: Array, idx: ArrayLike, H: Array, nu: Array, R: Arra
     if not inplace:
         mu, P = mu.copy(), P.copy()
     mu += At.T @ w
-    mu[2] = _wrap(mu[2])
+    mu[2] = wrap_angle_scalar(mu[2])
     _low_rank_downdate(P, At)
     if check:
         d = np.diagonal(P)
@@ -258,39 +215,6 @@ def ekf_update(mu: Array, P: Array, idx: ArrayLike, H: Array, nu: Array, R: Arra
             k = int(np.argmin(np.where(np.isfinite(d), d, -np.inf)))
             raise CovarianceError(f"update left P[{k},{k}] = {d[k]!r} (must be finite and >= 0)", applied=True)
     return mu, P
-
-
-def _wrap(a: float) -> float:
-    """Scalar twin of ``wrap_angle`` (same [-pi, pi) convention) for the per-observation hot path."""
-    r = (a + math.pi) % (2.0 * math.pi) - math.pi
-    return r - 2.0 * math.pi if r >= math.pi else r
-
-
-def range_bearing_scalar(pose: Array, landmark: Array) -> tuple[Array, Array]:
-    """[range, bearing] of one landmark and its Jacobian ``[H_pose | H_landmark]`` (2,5), in scalar arithmetic.
-
-    The batched ``models.sensors.range_bearing_jacobians`` costs ~80 us per call from array overheads; this twin is
-    used once per observation update. Its Jacobian is registered for the finite-difference check.
-    """
-    dx, dy = float(landmark[0]) - float(pose[0]), float(landmark[1]) - float(pose[1])
-    q = dx * dx + dy * dy
-    r = math.sqrt(q)
-    z = np.array([r, _wrap(math.atan2(dy, dx) - float(pose[2]))])
-    H = np.array([[-dx / r, -dy / r, 0.0, dx / r, dy / r], [dy / q, -dx / q, -1.0, -dy / q, dx / q]])
-    return z, H
-
-
-def _range_bearing_scalar_value(pose: Array, landmark: Array) -> Array:
-    return range_bearing_scalar(pose, landmark)[0]
-
-
-def _range_bearing_scalar_jacobians(pose: Array, landmark: Array) -> tuple[Array, Array]:
-    H = range_bearing_scalar(pose, landmark)[1]
-    return H[:, :POSE_DIM], H[:, POSE_DIM:]
-
-
-_jacobians.register(_range_bearing_scalar_value, _range_bearing_scalar_jacobians, ("pose", "point"), (1,),
-                    name="slam2d.filters.ekf_slam.range_bearing_scalar")
 
 
 def range_bearing_block(mu: Array, j: int) -> tuple[Array, Array, IntArray]:
@@ -314,7 +238,7 @@ def ekf_update_range_bearing(mu: Array, P: Array, j: int, z: ArrayLike, R: Array
     if not (math.isfinite(zr) and math.isfinite(zb) and zr >= 0):
         check_observations(zr, zb)
     z_pred, H, idx = range_bearing_block(mu, j)
-    nu = np.array([zr - z_pred[0], _wrap(zb - z_pred[1])])
+    nu = np.array([zr - z_pred[0], wrap_angle_scalar(zb - z_pred[1])])
     return ekf_update(mu, P, idx, H, nu, R, inplace=inplace, check=check)
 
 
@@ -403,24 +327,10 @@ def predict_landmarks(mu: Array, P: Array, js: ArrayLike, R: Array, *,
     lms = mu[lm_idx].reshape(n_l, 2)
     z_pred = range_bearing(pose, lms).reshape(n_l, 2)
     hp, hl = range_bearing_jacobians(np.broadcast_to(pose, (n_l, POSE_DIM)), lms)
-    prr = P[:POSE_DIM, :POSE_DIM]
-    prl = P[:POSE_DIM, lm_idx].reshape(POSE_DIM, n_l, 2)
-    # per-landmark S: H [[Prr, Prl],[Plr, Pll]] H^T + R with H = [hp, hl]
-    pll_diag = P[lm_idx.reshape(n_l, 2, 1), lm_idx.reshape(n_l, 1, 2)]  # (L,2,2)
-    t_pl = np.einsum("iab,bic,idc->iad", hp, prl, hl)
-    S = (np.einsum("iab,bc,idc->iad", hp, prr, hp) + t_pl + np.swapaxes(t_pl, 1, 2)
-         + np.einsum("iab,ibc,idc->iad", hl, pll_diag, hl) + R)
-    S = 0.5 * (S + np.swapaxes(S, 1, 2))
+    rows = lm_idx.reshape(n_l, 2)
     if not joint:
-        return z_pred, S, None
-    pll = P[np.ix_(lm_idx, lm_idx)].reshape(n_l, 2, n_l, 2)
-    cross = np.einsum("iab,bjc,jdc->iajd", hp, prl, hl)
-    sj = (np.einsum("iab,bc,jdc->iajd", hp, prr, hp) + cross + cross.transpose(2, 3, 0, 1)
-          + np.einsum("iab,ibjc,jdc->iajd", hl, pll, hl))
-    ar = np.arange(n_l)
-    sj[ar, :, ar, :] = S  # diagonal blocks (they carry the measurement noise)
-    sj = sj.reshape(2 * n_l, 2 * n_l)
-    return z_pred, S, 0.5 * (sj + sj.T)
+        return z_pred, innovation_covariance(hp, hl, P, rows, R), None
+    return (z_pred, *joint_innovation_covariance(hp, hl, P, rows, R))
 
 
 def run_association(observations: Observations, candidates: Candidates, config: AssociationConfig,

@@ -24,6 +24,7 @@ from slam2d.models.motion import (
     rtr_to_odometry,
     rtr_variances,
 )
+from slam2d.models.sensors import range_bearing_elementwise as _observe
 from slam2d.models.sensors import range_bearing_inverse, range_bearing_inverse_jacobians
 
 Array = NDArray[np.float64]
@@ -158,21 +159,6 @@ def motion_gaussian(poses: Array, u: Array, noise: MotionNoise) -> tuple[Array, 
     q = odometry_covariance(u, noise)
     cov = v @ q @ np.swapaxes(v, -1, -2)
     return mean, 0.5 * (cov + np.swapaxes(cov, -1, -2))
-
-
-def _observe(poses: Array, lm: Array) -> tuple[Array, Array, Array, Array, Array, Array]:
-    """Predicted range, bearing and the landmark Jacobian H_m entries, element-wise (fast for small batches).
-
-    Returns (range, bearing (unwrapped), h00, h01, h10, h11) with ``H_m = [[h00, h01], [h10, h11]]``; the pose
-    Jacobian is ``H_x = [-H_m | (0, -1)^T]`` (as ``range_bearing_jacobians``, which the FD test checks).
-    Shapes: poses (...,3), lm (...,2) -> six (...) arrays.
-    """
-    dx, dy = lm[..., 0] - poses[..., 0], lm[..., 1] - poses[..., 1]
-    # a floor keeps padded/empty candidate slots (means at the origin) and a landmark on the robot finite
-    q = np.maximum(dx * dx + dy * dy, 1e-18)
-    rng = np.sqrt(q)
-    bearing = np.arctan2(dy, dx) - poses[..., 2]
-    return rng, bearing, dx / rng, dy / rng, -dy / q, dx / q
 
 
 def _congruence2(h00: Array, h01: Array, h10: Array, h11: Array, s00: Array, s01: Array,

@@ -2,6 +2,7 @@
 
 from slam2d.geometry.angles import angle_diff as angle_diff
 from slam2d.geometry.angles import wrap_angle as wrap_angle
+from slam2d.geometry.angles import wrap_angle_scalar as wrap_angle_scalar
 from slam2d.geometry.gaussian import Ellipse as Ellipse
 from slam2d.geometry.gaussian import chi2_gate as chi2_gate
 from slam2d.geometry.gaussian import covariance_ellipse as covariance_ellipse

@@ -17,7 +17,6 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from slam2d import _jacobians
 from slam2d.geometry.angles import angle_diff, wrap_angle
 
 Array = NDArray[np.float64]
@@ -69,7 +68,6 @@ def compose_jacobians(a: ArrayLike, b: ArrayLike) -> tuple[Array, Array]:
     return ja, np.broadcast_to(jb, ja.shape).copy()
 
 
-_jacobians.register(compose, compose_jacobians, ("pose", "pose"), (2,))
 
 
 def inverse(a: ArrayLike) -> Array:
@@ -94,7 +92,6 @@ def inverse_jacobians(a: ArrayLike) -> tuple[Array]:
     return (j,)
 
 
-_jacobians.register(inverse, inverse_jacobians, ("pose",), (2,))
 
 
 def between(a: ArrayLike, b: ArrayLike) -> Array:
@@ -120,7 +117,6 @@ def between_jacobians(a: ArrayLike, b: ArrayLike) -> tuple[Array, Array]:
     return ja, jb
 
 
-_jacobians.register(between, between_jacobians, ("pose", "pose"), (2,))
 
 
 def transform_points(pose: ArrayLike, p: ArrayLike) -> Array:
@@ -143,7 +139,6 @@ def transform_points_jacobians(pose: ArrayLike, p: ArrayLike) -> tuple[Array, Ar
     return jpose, jp
 
 
-_jacobians.register(transform_points, transform_points_jacobians, ("pose", "point"))
 
 
 def inverse_transform_points(pose: ArrayLike, p: ArrayLike) -> Array:
@@ -165,7 +160,6 @@ def inverse_transform_points_jacobians(pose: ArrayLike, p: ArrayLike) -> tuple[A
     return jpose, jp
 
 
-_jacobians.register(inverse_transform_points, inverse_transform_points_jacobians, ("pose", "point"))
 
 
 def _exp_coeffs(w: Array) -> tuple[Array, Array, Array, Array]:
@@ -201,7 +195,6 @@ def exp_jacobians(v: ArrayLike) -> tuple[Array]:
     return (j,)
 
 
-_jacobians.register(exp, exp_jacobians, ("twist",), (2,))
 
 
 def log(pose: ArrayLike) -> Array:
@@ -221,7 +214,6 @@ def log_jacobians(pose: ArrayLike) -> tuple[Array]:
     return (np.asarray(np.linalg.inv(j), dtype=np.float64),)
 
 
-_jacobians.register(log, log_jacobians, ("pose",), (2,))
 
 
 def retract(x: ArrayLike, delta: ArrayLike) -> Array:

@@ -47,7 +47,7 @@ from slam2d.graph.local_belief import LocalBelief
 from slam2d.graph.marginals import marginal_covariances
 from slam2d.graph.optimizer import Optimizer, OptimizerConfig
 from slam2d.log import Step
-from slam2d.models.motion import MotionNoise, odometry_covariance
+from slam2d.models.motion import MotionNoise, odometry_factor
 from slam2d.models.sensors import (
     SensorConfig,
     range_bearing,
@@ -59,7 +59,7 @@ from slam2d.models.sensors import (
 Array = NDArray[np.float64]
 
 #: added to every odometry covariance before inverting it (see ``GraphSLAM.step``)
-ODOMETRY_FLOOR_COV = np.diag([1e-8, 1e-8, 1e-8])
+ODOMETRY_FLOOR_VAR = 1e-8
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -128,7 +128,6 @@ class GraphSLAMConfig:
         if self.loop_robust_kernel not in ("none", "huber", "cauchy", "dcs"):
             raise ValueError(f"GraphSLAMConfig.loop_robust_kernel must be none, huber, cauchy or dcs "
                              f"(got {self.loop_robust_kernel!r})")
-
 
     def tracks(self) -> TrackConfig:
         """The track rules of the tentative landmarks (a confirmed one leaves the tracks for the graph)."""
@@ -202,8 +201,8 @@ class GraphSLAM(EstimatorLifecycle):
         u = np.asarray(step.odometry, dtype=np.float64)
         pose = se2.compose(prev, u)
         # a noise model without a floor makes a standstill "certain"; 0.1 mm / 0.1 mrad keeps the information finite
-        q = odometry_covariance(u, cfg.motion) + ODOMETRY_FLOOR_COV
-        info = np.linalg.inv(q) * cfg.odometry_info_scale
+        _, info = odometry_factor(u, cfg.motion, floor_var=ODOMETRY_FLOOR_VAR)
+        info = info * cfg.odometry_info_scale
         # predict the belief with exactly what the new factor says: x_t = x_{t-1} (+) u with error e ~ N(0, info^-1)
         # in the factor's own (g2o, end-of-motion) frame: dx_t = -Jj^-1 Ji dx_{t-1} + Jj^-1 e
         ji, jj = between_error_jacobians(prev, pose, u)

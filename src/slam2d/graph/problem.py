@@ -23,6 +23,7 @@ import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
 from scipy.sparse.csgraph import connected_components
 
+from slam2d.geometry import se2
 from slam2d.graph.factors import KINDS
 from slam2d.graph.graph import FactorBlock, FactorGraph, GraphError, Values
 from slam2d.graph.robust import robustify
@@ -302,9 +303,7 @@ class Analysis:
         """Apply a step to the free variables (additive with heading wrap); returns new arrays."""
         p, q = poses.copy(), points.copy()
         k = 3 * self.free_pose.size
-        p[self.free_pose] += dx[:k].reshape(-1, 3)
-        p[self.free_pose, 2] = np.mod(p[self.free_pose, 2] + np.pi, 2 * np.pi) - np.pi
-        p[:, 2] = np.where(p[:, 2] >= np.pi, p[:, 2] - 2 * np.pi, p[:, 2])
+        p[self.free_pose] = se2.retract(p[self.free_pose], dx[:k].reshape(-1, 3))
         q[self.free_point] += dx[k:].reshape(-1, 2)
         return p, q
 

@@ -19,7 +19,7 @@ from slam2d.geometry.trilateration import trilaterate
 from slam2d.graph.graph import FactorGraph, Values
 from slam2d.graph.optimizer import OptimizerConfig, Summary, optimize
 from slam2d.log import Log, Step
-from slam2d.models.motion import MotionNoise, odometry_covariance
+from slam2d.models.motion import MotionNoise, odometry_factor
 from slam2d.models.sensors import SensorConfig
 
 Array = NDArray[np.float64]
@@ -83,8 +83,7 @@ def solve_range_only(initial_pose: Array, odometry: Array, obs_step: NDArray[np.
 
     graph = FactorGraph()
     t = np.arange(1, len(odometry) + 1)
-    q = odometry_covariance(odometry, cfg.motion)
-    graph.add_between(t - 1, t, odometry, np.linalg.inv(q))
+    graph.add_between(t - 1, t, *odometry_factor(odometry, cfg.motion))
     info = np.full((len(steps), 1, 1), 1.0 / cfg.range_std_m**2)
     kernel = None if cfg.robust_kernel == "none" else cfg.robust_kernel
     graph.add_range(steps, ids, ranges[:, None], info, robust=kernel, robust_param=cfg.robust_param)

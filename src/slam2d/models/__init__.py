@@ -1,5 +1,9 @@
 """Motion and sensor models, each with Jacobians and (where it exists) an inverse model."""
 
+from slam2d.models.floor_markers import FloorCameraConfig as FloorCameraConfig
+from slam2d.models.floor_markers import marker_in_robot as marker_in_robot
+from slam2d.models.floor_markers import marker_in_robot_jacobians as marker_in_robot_jacobians
+from slam2d.models.floor_markers import sense_floor_markers as sense_floor_markers
 from slam2d.models.lidar import LidarConfig as LidarConfig
 from slam2d.models.lidar import cast_rays as cast_rays
 from slam2d.models.lidar import scan_to_points as scan_to_points
@@ -7,6 +11,7 @@ from slam2d.models.lidar import simulate_scan as simulate_scan
 from slam2d.models.motion import MotionNoise as MotionNoise
 from slam2d.models.motion import VelocityNoise as VelocityNoise
 from slam2d.models.motion import odometry_covariance as odometry_covariance
+from slam2d.models.motion import odometry_factor as odometry_factor
 from slam2d.models.motion import odometry_predict as odometry_predict
 from slam2d.models.motion import odometry_predict_jacobians as odometry_predict_jacobians
 from slam2d.models.motion import odometry_to_rtr as odometry_to_rtr

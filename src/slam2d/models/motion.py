@@ -8,15 +8,15 @@ arc, ``exp([v dt, 0, w dt])``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from slam2d import _jacobians
 from slam2d.config import check_nonnegative
 from slam2d.geometry import se2
-from slam2d.geometry.angles import angle_diff, wrap_angle
+from slam2d.geometry.angles import angle_diff, wrap_angle, wrap_angle_scalar
 
 Array = NDArray[np.float64]
 
@@ -81,8 +81,6 @@ def rtr_to_odometry_jacobians(m: ArrayLike) -> tuple[Array]:
     return (se2.matrix_from_rows([-t * s, c, zero], [t * c, s, zero], [one, zero, one]),)
 
 
-_jacobians.register(rtr_to_odometry, rtr_to_odometry_jacobians, ("twist",), (2,))
-
 
 def rtr_variances(m: ArrayLike, noise: MotionNoise) -> Array:
     """Variances of (rot1, trans, rot2) for motion ``m`` (table 5.6 plus the noise floor). Shapes: (...,3)->(...,3)."""
@@ -103,6 +101,25 @@ def odometry_covariance(u: ArrayLike, noise: MotionNoise) -> Array:
     return np.einsum("...ij,...j,...kj->...ik", v, var, v)
 
 
+def odometry_factor(u: ArrayLike, noise: MotionNoise, *, floor_var: float = 0.0) -> tuple[Array, Array]:
+    """Measurement and information of the between factor that odometry ``u`` becomes: ``(z, info)``.
+
+    The between factor's error (``graph/factors.py``, g2o EdgeSE2) expresses the translation residual in the frame
+    of the END of the motion: ``e = [R(dtheta)^T (t - [dx, dy]); theta - dtheta]``. So the error covariance is the
+    [dx, dy, dtheta] covariance rotated by ``R(dtheta)^T``; inverting the unrotated covariance would weight the
+    along- and across-track directions wrongly after every turn. ``floor_var`` is added to every diagonal entry of
+    the covariance (isotropic, so rotation leaves it unchanged) to keep a standstill's information finite.
+    Shapes: (...,3) -> (...,3), (...,3,3).
+    """
+    z = np.array(u, dtype=np.float64)
+    cov = odometry_covariance(z, noise)
+    c, s = np.cos(z[..., 2]), np.sin(z[..., 2])
+    one, zero = np.ones_like(c), np.zeros_like(c)
+    r_t = se2.matrix_from_rows([c, s, zero], [-s, c, zero], [zero, zero, one])
+    cov_e = r_t @ cov @ np.swapaxes(r_t, -1, -2) + floor_var * np.eye(3)
+    return z, np.asarray(np.linalg.inv(cov_e), dtype=np.float64)
+
+
 def sample_odometry(u_true: ArrayLike, noise: MotionNoise, rng: np.random.Generator) -> Array:
     """A noisy odometry reading of the true relative motion ``u_true`` (noise applied in rot1-trans-rot2 space)."""
     m = odometry_to_rtr(u_true)
@@ -120,7 +137,46 @@ def odometry_predict_jacobians(pose: ArrayLike, u: ArrayLike) -> tuple[Array, Ar
     return se2.compose_jacobians(pose, u)
 
 
-_jacobians.register(odometry_predict, odometry_predict_jacobians, ("pose", "odometry"), (2,))
+
+# Scalar twins (plain floats, no batch axis) for per-step filter hot paths; tests pin them to the array versions.
+def odometry_scalar(pose: Array, u: Array) -> tuple[Array, Array, Array]:
+    """``pose (+) u`` and its Jacobians ``G = d/d pose``, ``V = d/d u`` (3,3) in scalar arithmetic.
+
+    Twin of :func:`odometry_predict` (and its Jacobians) without the batched-array overheads, for filters that run
+    it once per step; ``odometry_scalar_value``/``_jacobians`` expose it to the finite-difference check.
+    """
+    x, y, th = float(pose[0]), float(pose[1]), float(pose[2])
+    dx, dy, dth = float(u[0]), float(u[1]), float(u[2])
+    c, s = math.cos(th), math.sin(th)
+    new = np.array([x + c * dx - s * dy, y + s * dx + c * dy, wrap_angle_scalar(th + dth)])
+    G = np.array([[1.0, 0.0, -s * dx - c * dy], [0.0, 1.0, c * dx - s * dy], [0.0, 0.0, 1.0]])
+    V = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return new, G, V
+
+
+def odometry_scalar_value(pose: Array, u: Array) -> Array:
+    return odometry_scalar(pose, u)[0]
+
+
+def odometry_scalar_jacobians(pose: Array, u: Array) -> tuple[Array, Array]:
+    _, G, V = odometry_scalar(pose, u)
+    return G, V
+
+
+def odometry_covariance_scalar(u: Array, noise: MotionNoise) -> Array:
+    """Scalar twin of :func:`odometry_covariance` (covariance of u in [dx, dy, dtheta]); a test checks
+    that the two agree."""
+    dx, dy, dth = float(u[0]), float(u[1]), float(u[2])
+    t = math.hypot(dx, dy)
+    r1 = math.atan2(dy, dx) if t > 1e-9 else 0.0
+    r2 = wrap_angle_scalar(dth - r1)
+    r1w = wrap_angle_scalar(r1)
+    v1 = noise.alpha_rot_rot * r1w**2 + noise.alpha_rot_trans * t**2 + noise.min_rot_std_rad**2
+    vt = noise.alpha_trans_trans * t**2 + noise.alpha_trans_rot * (r1w**2 + r2**2) + noise.min_trans_std_m**2
+    v2 = noise.alpha_rot_rot * r2**2 + noise.alpha_rot_trans * t**2 + noise.min_rot_std_rad**2
+    c, s = math.cos(r1), math.sin(r1)
+    J = np.array([[-t * s, c, 0.0], [t * c, s, 0.0], [1.0, 0.0, 1.0]])  # d[dx,dy,dth]/d[rot1,trans,rot2]
+    return (J * np.array([v1, vt, v2])) @ J.T
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -155,8 +211,6 @@ def velocity_increment_jacobians(vw: ArrayLike, dt: float) -> tuple[Array]:
     return (np.stack([j[..., :, 0] * dt, j[..., :, 2] * dt], axis=-1),)
 
 
-_jacobians.register(velocity_increment, velocity_increment_jacobians, ("velocity",), (2,), dt=0.3)
-
 
 def velocity_predict(pose: ArrayLike, vw: ArrayLike, dt: float) -> Array:
     """Pose after driving (v, w) for dt from ``pose``."""
@@ -170,8 +224,6 @@ def velocity_predict_jacobians(pose: ArrayLike, vw: ArrayLike, dt: float) -> tup
     (ju,) = velocity_increment_jacobians(vw, dt)
     return ja, jb @ ju
 
-
-_jacobians.register(velocity_predict, velocity_predict_jacobians, ("pose", "velocity"), (2,), dt=0.3)
 
 
 def velocity_covariance(vw: ArrayLike, noise: VelocityNoise) -> Array:

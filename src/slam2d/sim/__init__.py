@@ -12,5 +12,6 @@ from slam2d.sim.simulator import spawn_streams as spawn_streams
 from slam2d.sim.trajectory import AutoExplorer as AutoExplorer
 from slam2d.sim.trajectory import ManualDriver as ManualDriver
 from slam2d.sim.trajectory import WaypointFollower as WaypointFollower
+from slam2d.sim.warehouse import WarehouseConfig as WarehouseConfig
 from slam2d.sim.world import MovingObject as MovingObject
 from slam2d.sim.world import World as World

@@ -2,7 +2,11 @@
 
 * ``room``: a 20 x 14 m room with a pillar and ~30 landmarks; the robot drives two laps (the default scenario).
 * ``loop``: a 4 m wide corridor around a 60 x 40 m block: a 200 m loop that returns to its start.
-* ``warehouse``: identical shelf rows whose posts form repeating landmark patterns, with forklifts driving the aisles.
+* ``warehouse``: identical shelf rows whose posts form repeating landmark patterns, with forklifts driving the aisles
+  (40 x 30 m, up to 3 forklifts: small and fast, used by the tests and the lab).
+* ``warehouse-challenge``: the lesson's design challenge at full scale (``slam2d.sim.warehouse``): 100 x 100 m, 14
+  identical aisles of back-to-back racks, 600 pallets that move between flights, 20 forklifts on the aisles and
+  cross-aisles, a 30 Hz / 30 m / 360-beam lidar and optional floor markers; every size is a config field.
 * ``grid``: landmarks on a regular grid (any count) and a circular drive, for scaling studies.
 * ``scramble``: tight clusters of landmarks along a loop, neighbours 0.2-0.6 m apart (a few sensor standard
   deviations, often inside one another's 99 % gate), so that a small pose error confuses nearest neighbour; the
@@ -20,9 +24,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam2d.config import check_nonnegative, check_positive
+from slam2d.models.floor_markers import FloorCameraConfig
 from slam2d.models.lidar import LidarConfig
 from slam2d.models.motion import MotionNoise
 from slam2d.models.sensors import SensorConfig
+from slam2d.sim.warehouse import WarehouseConfig, build_warehouse
 from slam2d.sim.world import MovingObject, World, box_walls
 
 Array = NDArray[np.float64]
@@ -51,7 +57,12 @@ class ScenarioConfig:
     sensor: SensorConfig = field(default_factory=SensorConfig)
     """range-bearing landmark sensor."""
     lidar: LidarConfig = field(default_factory=LidarConfig)
-    """lidar (scans are skipped in worlds without walls)."""
+    """lidar (scans are skipped in worlds without walls). A scenario may preset some fields (warehouse-challenge:
+    360 beams all round, 30 m); a field left at the library default takes the scenario's preset value."""
+    camera: FloorCameraConfig = field(default_factory=FloorCameraConfig)
+    """downward camera reading floor markers (only in worlds that have them)."""
+    warehouse: WarehouseConfig = field(default_factory=WarehouseConfig)
+    """layout of the warehouse-challenge scenario (size, aisles, pallets, flight, floor markers)."""
     gps_every: int = 0
     """take a GPS fix every this many steps (0: no GPS)."""
     gps_std_m: float = 0.5
@@ -73,11 +84,20 @@ class ScenarioConfig:
         for n in ("landmarks", "moving_objects"):
             if getattr(self, n) is not None and n not in spec.defaults:
                 raise ValueError(f"ScenarioConfig.{n} cannot be set for scenario {self.name!r}")
+        if self.warehouse != WarehouseConfig() and not spec.uses_warehouse:
+            raise ValueError(f"ScenarioConfig.warehouse cannot be set for scenario {self.name!r} (only for "
+                             f"{sorted(k for k, s in SCENARIOS.items() if s.uses_warehouse)})")
+        if spec.check is not None:
+            spec.check(self)
 
     def resolved(self) -> ScenarioConfig:
         """This config with every ``None`` replaced by the scenario's default."""
         spec = SCENARIOS[self.name]
         updates: dict[str, Any] = {k: v for k, v in spec.defaults.items() if getattr(self, k) is None}
+        if spec.lidar:
+            base = LidarConfig()
+            preset = {k: v for k, v in spec.lidar.items() if getattr(self.lidar, k) == getattr(base, k)}
+            updates["lidar"] = dataclasses.replace(self.lidar, **preset)
         return dataclasses.replace(self, **updates)
 
 
@@ -96,6 +116,12 @@ class ScenarioSpec:
     description: str
     defaults: dict[str, float | int]
     build: Callable[[ScenarioConfig, np.random.Generator], Layout]
+    check: Callable[[ScenarioConfig], None] | None = None
+    """raises ValueError naming the field when a config asks for more than the layout can hold."""
+    lidar: dict[str, Any] | None = None
+    """lidar fields this scenario presets (see ``ScenarioConfig.lidar``)."""
+    uses_warehouse: bool = False
+    """whether ``ScenarioConfig.warehouse`` applies."""
 
 
 def _random_landmarks(rng: np.random.Generator, n: int, box: tuple[float, float, float, float],
@@ -163,7 +189,7 @@ def _warehouse(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
         for x in np.arange(8.0, 32.1, 4.0):
             posts += [[x, y - 0.2], [x, y + 1.2]]
     lm = np.array(posts)
-    aisles = [3.0, 9.5, 15.5, 21.5, 27.5]
+    aisles = [3.0, 9.5, 15.5, 21.5, 27.5]  # one forklift fits in each of the three inner aisles (_check_warehouse)
     route = []
     for i, y in enumerate(aisles):
         xs = [4.0, 36.0] if i % 2 == 0 else [36.0, 4.0]
@@ -175,6 +201,26 @@ def _warehouse(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
     )
     world = World(lm, np.arange(len(lm)), np.vstack(walls), moving=movers, bounds=(0, 0, 40, 30))
     return Layout(world, route_arr, np.array([4.0, 3.0, 0.0]))
+
+
+def _check_warehouse(cfg: ScenarioConfig) -> None:
+    if cfg.moving_objects is not None and cfg.moving_objects > 3:
+        raise ValueError(f"ScenarioConfig.moving_objects = {cfg.moving_objects} does not fit the 'warehouse' layout "
+                         "(3 inner aisles, one forklift each); use scenario 'warehouse-challenge' for more")
+
+
+def _warehouse_challenge(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
+    built = build_warehouse(cfg.warehouse, int(cfg.moving_objects if cfg.moving_objects is not None else 20), rng)
+    return Layout(built.world, built.waypoints, built.initial_pose)
+
+
+def _check_warehouse_challenge(cfg: ScenarioConfig) -> None:
+    w = cfg.warehouse
+    roads = len(w.road_centres_y()) * w.width_m + len(w.cross_centres_x()) * w.depth_m
+    most = int(roads // 10.0)  # one forklift per 10 m of road keeps traffic plausible
+    if cfg.moving_objects is not None and cfg.moving_objects > most:
+        raise ValueError(f"ScenarioConfig.moving_objects = {cfg.moving_objects} does not fit: this warehouse has "
+                         f"{roads:.0f} m of roads, room for at most {most} forklifts (one per 10 m)")
 
 
 def _grid(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
@@ -245,7 +291,14 @@ SCENARIOS: dict[str, ScenarioSpec] = {
     "loop": ScenarioSpec("loop", "200 m corridor loop that returns to its start",
                          dict(steps=460, dt_s=0.25, speed_mps=2.0, landmarks=100), _loop),
     "warehouse": ScenarioSpec("warehouse", "repetitive shelf aisles with moving forklifts",
-                              dict(steps=600, dt_s=0.2, speed_mps=1.2, moving_objects=3), _warehouse),
+                              dict(steps=600, dt_s=0.2, speed_mps=1.2, moving_objects=3), _warehouse,
+                              check=_check_warehouse),
+    "warehouse-challenge": ScenarioSpec(
+        "warehouse-challenge", "100 x 100 m, 14 identical aisles, pallets moved between flights, 20 forklifts",
+        dict(steps=1800, dt_s=1.0 / 30.0, speed_mps=1.2, moving_objects=20), _warehouse_challenge,
+        check=_check_warehouse_challenge,
+        # 360 beams evenly all round (no duplicate beam at +-pi), 30 m: the challenge's lidar at 30 Hz (dt_s)
+        lidar=dict(beams=360, fov_rad=2 * np.pi * 359 / 360, max_range_m=30.0), uses_warehouse=True),
     "grid": ScenarioSpec("grid", "landmarks on a grid (any count), circular drive; for scaling",
                          dict(steps=300, dt_s=0.2, speed_mps=1.5, landmarks=100), _grid),
     "scramble": ScenarioSpec("scramble", "clusters of landmarks closer than the association gates; data association",

@@ -16,17 +16,19 @@ from numpy.typing import NDArray
 
 from slam2d.config import to_dict, with_overrides
 from slam2d.geometry import se2
-from slam2d.log import DYNAMIC_ID, Log, Observations, Scan, Step
-from slam2d.models.lidar import simulate_scan
+from slam2d.log import DYNAMIC_ID, Log, MarkerReadings, Observations, Scan, Step
+from slam2d.models.floor_markers import sense_floor_markers
 from slam2d.models.motion import sample_odometry, velocity_increment
 from slam2d.models.sensors import range_bearing, sense_clutter, sense_landmarks, visible
+from slam2d.sim.raycast import simulate_scan_culled
 from slam2d.sim.scenarios import SCENARIOS, ScenarioConfig
 from slam2d.sim.trajectory import AutoExplorer, WaypointFollower
 from slam2d.sim.world import World
 
 Array = NDArray[np.float64]
 
-STREAMS = ("world", "motion", "sensor", "clutter", "lidar", "gps", "driver", "descriptors", "dynamic", "estimator")
+STREAMS = ("world", "motion", "sensor", "clutter", "lidar", "gps", "driver", "descriptors", "dynamic", "estimator",
+           "markers")
 
 
 def spawn_streams(seed: int) -> dict[str, np.random.Generator]:
@@ -48,7 +50,8 @@ class Simulator:
     The web lab drives this directly from key presses; :func:`simulate` drives it with the scenario's driver.
     """
 
-    def __init__(self, config: ScenarioConfig | None = None, seed: int = 0, world: World | None = None) -> None:
+    def __init__(self, config: ScenarioConfig | None = None, seed: int = 0, world: World | None = None,
+                 record: bool = True) -> None:
         self.config = (config or ScenarioConfig()).resolved()
         self.seed = int(seed)
         self.rng = spawn_streams(self.seed)
@@ -61,11 +64,14 @@ class Simulator:
         self.waypoints = layout.waypoints
         self.initial_pose = layout.initial_pose.astype(np.float64)
         self.pose = self.initial_pose.copy()
+        self.record = record
+        """keep every step for :meth:`to_log`; False streams (memory stays flat over a long shift)."""
         self.time_s = 0.0
         self.index = 0
         self._has_scan = self.config.lidar.enabled and len(self.world.walls) > 0
         self._rec: dict[str, list[Any]] = {k: [] for k in ("odom", "stamps", "poses", "obs_step", "z", "ids", "desc",
-                                                            "gps_step", "gps", "scan_step", "scan", "dyn")}
+                                                            "gps_step", "gps", "scan_step", "scan", "dyn",
+                                                            "marker_step", "marker_xy", "marker_id")}
         self._rec["stamps"].append(0.0)
         self._rec["poses"].append(self.pose.copy())
         self._rec["dyn"].append(self.world.moving_positions(0.0))
@@ -110,9 +116,17 @@ class Simulator:
             gps = self.pose[:2] + self.rng["gps"].standard_normal(2) * cfg.gps_std_m
         scan = None
         if self._has_scan and self.index % cfg.lidar.every == 0:
-            ranges = simulate_scan(self.pose, self.world.segments_at(self.time_s), cfg.lidar, self.rng["lidar"])
+            near = self.world.segments_near(self.time_s, self.pose[:2], cfg.lidar.max_range_m)
+            ranges = simulate_scan_culled(self.pose, near, cfg.lidar, self.rng["lidar"])
             scan = Scan(ranges, cfg.lidar.angles(), cfg.lidar.max_range_m)
+        markers = None
+        if len(self.world.floor_markers) and self.index % cfg.camera.read_every == 0:
+            xy, mid = sense_floor_markers(self.pose, self.world.floor_markers, cfg.camera, self.rng["markers"])
+            markers = MarkerReadings(xy, mid)
 
+        step = Step(self.index, self.time_s, dt, odom, obs, gps, scan, markers)
+        if not self.record:
+            return step
         r = self._rec
         r["odom"].append(odom)
         r["stamps"].append(self.time_s)
@@ -129,7 +143,11 @@ class Simulator:
             r["scan_step"].append(self.index)
             r["scan"].append(scan.ranges_m)
         r["dyn"].append(dyn)
-        return Step(self.index, self.time_s, dt, odom, obs, gps, scan)
+        if markers is not None:
+            r["marker_step"].append(np.full(len(markers), self.index, dtype=np.int64))
+            r["marker_xy"].append(markers.xy_m)
+            r["marker_id"].append(markers.ids)
+        return step
 
     def metadata(self) -> dict[str, Any]:
         """Seed, full resolved config, sensor/motion parameters and versions (recorded in every Log)."""
@@ -148,11 +166,14 @@ class Simulator:
 
     def to_log(self) -> Log:
         """Everything simulated so far as a :class:`Log` (with ground truth)."""
+        if not self.record:
+            raise ValueError("this Simulator was made with record=False: it streams steps and keeps no Log")
         r = self._rec
         t = len(r["odom"])
         z = np.vstack(r["z"]) if r["z"] else np.zeros((0, 2))
         has_scan = bool(r["scan"])
         has_dyn = len(self.world.moving) > 0
+        has_markers = len(self.world.floor_markers) > 0
         return Log(
             stamps_s=np.asarray(r["stamps"], dtype=np.float64),
             odometry=np.asarray(r["odom"], dtype=np.float64).reshape(t, 3),
@@ -173,6 +194,10 @@ class Simulator:
             scan_angles_rad=self.config.lidar.angles() if has_scan else None,
             scan_max_range_m=self.config.lidar.max_range_m if has_scan else 0.0,
             dynamic_xy=np.asarray(r["dyn"], dtype=np.float64) if has_dyn else None,
+            marker_step=np.concatenate([np.zeros(0, np.int64), *r["marker_step"]]) if has_markers else None,
+            marker_xy_m=np.vstack([np.zeros((0, 2)), *r["marker_xy"]]) if has_markers else None,
+            marker_id=np.concatenate([np.zeros(0, np.int64), *r["marker_id"]]) if has_markers else None,
+            true_markers=self.world.floor_markers.copy() if has_markers else None,
             metadata=self.metadata(),
         )
 

@@ -21,7 +21,7 @@ from slam2d.geometry import se2
 from slam2d.lab.registry import estimator_names, get_spec, make_estimator
 from slam2d.log import Step
 from slam2d.models.lidar import LidarConfig, scan_to_points
-from slam2d.models.motion import MotionNoise, odometry_covariance
+from slam2d.models.motion import MotionNoise, odometry_factor
 from slam2d.models.sensors import SensorConfig, range_bearing_inverse, range_bearing_inverse_jacobians
 from slam2d.sim.scenarios import SCENARIOS, ScenarioConfig
 from slam2d.sim.simulator import Simulator
@@ -620,19 +620,15 @@ class AssociationSession(Session):
         self._associate_now()
 
     def candidates(self) -> Any:
-        from slam2d.association import Candidates
+        from slam2d.association import Candidates, joint_innovation_covariance
         from slam2d.models.sensors import range_bearing, range_bearing_jacobians
 
         # every landmark within reach of the belief (range plus a margin for the pose error) is a candidate
         zp = range_bearing(self.belief, self.landmarks)
         near = np.flatnonzero(zp[:, 0] <= self.sensor.max_range_m + 3.0)
-        hp, _ = range_bearing_jacobians(np.broadcast_to(self.belief, (len(near), 3)), self.landmarks[near])
-        r = self.sensor.covariance
-        s = hp @ self.pose_cov @ np.swapaxes(hp, -1, -2) + r
-        s = 0.5 * (s + np.swapaxes(s, -1, -2))
-        hstack = hp.reshape(-1, 3)
-        s_joint = hstack @ self.pose_cov @ hstack.T + np.kron(np.eye(len(near)), r)
-        s_joint = 0.5 * (s_joint + s_joint.T)
+        hp, hl = range_bearing_jacobians(np.broadcast_to(self.belief, (len(near), 3)), self.landmarks[near])
+        # the map is known exactly (rows=None): only the pose is uncertain
+        s, s_joint = joint_innovation_covariance(hp, hl, self.pose_cov, None, self.sensor.covariance)
         return Candidates(near.astype(np.int64), zp[near], s, s_joint)
 
     def _associate_now(self) -> None:
@@ -1008,15 +1004,8 @@ class GraphSession(Session):
         t = log.num_steps
         noise = self.sim.config.motion
         graph = g.FactorGraph()
-        # odometry: z = pose t+1 in the frame of pose t; its covariance (dx, dy, dth) rotated into the factor's
-        # error frame (the translation error is expressed after rotating by -dth)
-        u = log.odometry
-        cov = odometry_covariance(u, noise)
-        c, s = np.cos(u[:, 2]), np.sin(u[:, 2])
-        j = np.zeros((t, 3, 3))
-        j[:, 0, 0], j[:, 0, 1], j[:, 1, 0], j[:, 1, 1], j[:, 2, 2] = c, s, -s, c, 1.0
-        cov_e = j @ cov @ np.swapaxes(j, 1, 2)
-        graph.add_between(np.arange(t), np.arange(1, t + 1), u, np.linalg.inv(cov_e))
+        # odometry: z = pose t+1 in the frame of pose t, information in the factor's error frame
+        graph.add_between(np.arange(t), np.arange(1, t + 1), *odometry_factor(log.odometry, noise))
         keep = log.obs_id >= 0
         steps, ids = log.obs_step[keep], log.obs_id[keep]
         z = np.column_stack([log.obs_range_m[keep], log.obs_bearing_rad[keep]])

@@ -15,7 +15,7 @@ Pipeline (:func:`run_lidar_slam`):
 5. non-keyframe scans get the pose of their keyframe composed with the odometry increment since it, or, with
    ``refine_scans``, are each matched by ICP to the local map around their keyframe (fixed at its optimised pose).
 
-The pose graph is solved by the graph back end (:mod:`slam2d.graph`, Gauss-Newton with a Cauchy kernel on the loop
+The pose graph is solved by this package's back end (:mod:`slam2d.graph`, Gauss-Newton with a Cauchy kernel on the loop
 edges).
 """
 
@@ -30,6 +30,8 @@ from slam2d.config import check_positive
 from slam2d.frontend.icp import ICPConfig, icp
 from slam2d.geometry import se2
 from slam2d.geometry.angles import wrap_angle
+from slam2d.graph.graph import FactorGraph, Values
+from slam2d.graph.optimizer import OptimizerConfig, optimize
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -115,8 +117,6 @@ def solve_pose_graph(poses: ArrayLike, edges: PoseGraphEdges, iterations: int = 
     standard deviations, sqrt(chi2)) when it is > 0. Gauss-Newton, at most ``iterations`` iterations.
     Returns the optimised poses (N,3) and the final cost. Shapes: poses (N,3).
     """
-    from slam2d.graph import FactorGraph, OptimizerConfig, Values, optimize
-
     x = np.asarray(poses, dtype=np.float64).copy()
     n = len(x)
     if len(edges.i) == 0 or n < 2:
