@@ -200,5 +200,5 @@ def test_back_ends_keep_a_slowly_moving_object_out_with_the_persistence_rule(nam
             est.step(Step(index=t, time_s=0.1 * t, dt_s=0.1, odometry=np.zeros(3),
                           observations=Observations(r, b, np.array([-1, -1]))))
         confirmed[dyn] = est.estimate().landmarks
-    assert len(confirmed[False]) == 2, confirmed  # without the rule the creeping object becomes a landmark
+    assert len(confirmed[False]) >= 2, confirmed  # without the rule the creeping object becomes landmark(s)
     assert len(confirmed[True]) == 1 and np.hypot(*(confirmed[True][0] - [3.0, 0.0])) < 0.1, confirmed

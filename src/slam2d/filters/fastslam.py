@@ -138,11 +138,13 @@ class FastSLAMConfig:
     ``auto``: known when the data carry ids (:func:`slam2d.association.resolve_method`)."""
     confirm_after: int = 2
     """per-particle ML: a landmark is tentative (not in the snapshot's map) until sighted this many times."""
-    tentative_max_misses: int = 3
+    tentative_max_misses: int = 2
     """per-particle ML: a tentative landmark predicted well inside the view this many consecutive steps without a
     sighting is pruned (0: never); divided by the sensor's detection_prob."""
-    confirmed_max_misses: int = 5
-    """the same for confirmed landmarks (0: never)."""
+    confirmed_max_misses: int = 0
+    """the same for confirmed landmarks (0: never). Defaults 2 / 0 keep FastSLAM's former existence counter in spirit
+    (a once-seen landmark went after 2 misses, an established one practically never) and gave the best maps at
+    equal ATE on MRCLAM robots 1-3 (against 3 / 5, EKF-SLAM's defaults)."""
     view_margin_m: float = 0.5
     """"well inside the view": predicted range <= max_range_m - view_margin_m (and inside the field of view)."""
     dynamic_test: bool = False
