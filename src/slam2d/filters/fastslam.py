@@ -48,7 +48,8 @@ e.g. after an absurd outlier), the filter resets to uniform weights and counts i
 Snapshot: ``pose`` is the weighted mean of the particle poses (circular mean for the heading) computed before
 resampling; ``pose_cov`` the weighted sample covariance around it; the map (landmarks, covariances, ids) is the one
 of the particle with the highest weight before resampling (followed through resampling to one of its copies):
-its confirmed landmarks; its tentative ones are ``tentative_landmarks`` / ``tentative_ids``. Landmark ids are the source's ids for known association, the particle's slot numbers otherwise.
+its confirmed landmarks; its tentative ones are ``tentative_landmarks`` / ``tentative_ids``. Landmark ids are the
+source's ids for known association, the particle's slot numbers otherwise.
 ``particles``: poses (M,3) and weights (M,) after this step, ``n_eff`` (before resampling) and ``resampled``;
 ``diagnostics.weight_resets`` (cumulative); ``state_dim`` (3 + 2 x landmarks of the shown particle, the size of one
 particle's state, comparable to EKF-SLAM's); ``association`` (per observation: the shown particle's landmark id (a new
