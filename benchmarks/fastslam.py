@@ -52,7 +52,7 @@ def make_filter(m: int, lm: np.ndarray, version: int, method: str, rng: np.rando
     p.ensure_capacity(n)
     p.lm_mean[:, :n] = lm + rng.normal(0, 0.05, size=(m, n, 2))
     p.lm_cov[:, :n] = np.diag([0.0025, 0.0025])
-    p.lm_evidence[:, :n] = 10
+    p.tracks.hits[:, :n] = 10  # sighted ten times: confirmed
     p.lm_count[:] = n
     return est
 

@@ -30,7 +30,7 @@ RULES = {
 
 #: files other helpers are splitting right now (issue 15); remove each entry once the file is under the limit
 PENDING_SPLIT = {
-    "filters/ekf_slam.py", "filters/fastslam.py", "lab/sweep.py",
+    "lab/sweep.py",
 }
 #: files that still carry the lab's old "not available yet" notices for optional back ends (all back ends exist
 #: now; the web/cli owners remove these paths); remove each entry once the text is gone

@@ -390,7 +390,8 @@ def test_registered_and_filled_from_log_metadata():
     cfg = make_config("ekf", None, log.metadata)
     assert isinstance(cfg, EKFConfig)
     assert cfg.sensor.range_std_m == 0.3
-    assert cfg.association.method == "known"
+    assert cfg.association.method == "auto"  # resolved by the runner from the log, or at the first step
+    assert make_config("ekf", None, log.metadata, has_ids=True).association.method == "known"
     est = make_estimator("ekf", {"snapshot_full_cov": True}, log.metadata)
     res = run(est, log, rng=np.random.default_rng(0))
     snap = res.final
@@ -623,7 +624,7 @@ def test_post_update_check_flags_a_negative_variance_and_the_estimator_repairs_i
     est = EKFSLAM(EKFConfig(confirm_after=1, tentative_max_misses=0))
     est.reset(np.zeros(3), rng=np.random.default_rng(0))
     est._mu, est._P, est._ids = mu.copy(), P.copy(), np.array([0, 1])
-    est._hits, est._misses = np.ones(2, dtype=np.int64), np.zeros(2, dtype=np.int64)
+    est._tracks.append(2, step=0)  # two landmarks sighted once (the tracks replace the private hit/miss arrays)
     est.step(Step(index=1, time_s=0.2, dt_s=0.2, odometry=np.zeros(3),
                   observations=Observations(np.array([1.5]), np.array([0.0]), np.array([0]))))
     mu2, P2, _ = est.state

@@ -223,26 +223,33 @@ def _filled_filter(m=12, version=1, method="mahalanobis", **kw) -> FastSLAM:
     return est
 
 
+def _arrays(p: ParticleSet) -> dict[str, np.ndarray]:
+    """Every per-particle array of a particle set, the landmark tracks' arrays included."""
+    out = {f.name: getattr(p, f.name) for f in dataclasses.fields(p) if f.name != "tracks"}
+    out.update({f"tracks.{n}": getattr(p.tracks, n) for n in ("hits", "misses", "first_step", "last_step",
+                                                               "dynamic")})
+    return out
+
+
 @pytest.mark.parametrize("method", ["known", "mahalanobis"])
 def test_resampling_copies_each_map_from_its_source_and_shares_nothing(method):
     est = _filled_filter(method=method)
     p = est.particles
     assert len(np.unique(p.poses[:, 0])) == p.size  # the particles really differ
     idx = np.array([5, 5, 5, 0, 11, 2, 2, 9, 9, 9, 1, 5])
-    before = dataclasses.replace(p, **{f.name: getattr(p, f.name).copy() for f in dataclasses.fields(p)})
+    before = {k: a.copy() for k, a in _arrays(p).items()}
     q = p.select(idx)
-    names = [f.name for f in dataclasses.fields(q)]
-    for name in names:
-        np.testing.assert_array_equal(getattr(q, name), getattr(before, name)[idx])
-        assert not np.shares_memory(getattr(q, name), getattr(p, name))
+    for name, a in _arrays(q).items():
+        np.testing.assert_array_equal(a, before[name][idx])
+        assert not np.shares_memory(a, _arrays(p)[name])
     # change particle 0 (a copy of source 5, as are particles 1, 2 and 11): nobody else changes
     q.lm_mean[0] += 1.0
     q.lm_cov[0] *= 2.0
-    q.lm_evidence[0] += 7
+    q.tracks.hits[0] += 7
     q.poses[0] += 1.0
-    for name in names:
-        np.testing.assert_array_equal(getattr(q, name)[1:], getattr(before, name)[idx][1:])
-        np.testing.assert_array_equal(getattr(p, name), getattr(before, name))
+    for name, a in _arrays(q).items():
+        np.testing.assert_array_equal(a[1:], before[name][idx][1:])
+        np.testing.assert_array_equal(_arrays(p)[name], before[name])
 
 
 def test_resampling_inside_the_filter_gives_independent_copies():
@@ -291,8 +298,8 @@ def test_capacity_growth_keeps_the_maps_exactly():
     k = small.particles.capacity
     np.testing.assert_array_equal(small.particles.poses, big.particles.poses)
     np.testing.assert_array_equal(small.particles.lm_mean, big.particles.lm_mean[:, :k])
-    np.testing.assert_array_equal(small.particles.lm_evidence, big.particles.lm_evidence[:, :k])
-    assert not big.particles.lm_evidence[:, k:].any()
+    np.testing.assert_array_equal(small.particles.tracks.hits, big.particles.tracks.hits[:, :k])
+    assert not big.particles.tracks.hits[:, k:].any()
 
 
 # --------------------------------------------------------------------------------------------------- proposal / weights
@@ -309,7 +316,7 @@ def _one_landmark_filter(m, version, lm, sig, poses=None, sensor=None):
         p.poses[:] = poses
     p.lm_mean[:, slot] = lm
     p.lm_cov[:, slot] = sig
-    p.lm_evidence[:, slot] = 3
+    p.tracks.start(np.full(m, slot), 0, rows=np.arange(m))
     return est, slot
 
 
@@ -405,7 +412,7 @@ def test_ml_association_equals_brute_force_over_all_landmarks(rng):
             c, new = est._ml_associate(poses, pose_cov, z, cand, valid)
             c3, new3 = near._ml_associate(poses, pose_cov, z, cand, valid)
             for i in range(10):
-                slots = np.flatnonzero(p.lm_evidence[i] > 0)
+                slots = np.flatnonzero(p.tracks.occupied[i])
                 zh = range_bearing(poses[i], p.lm_mean[i, slots])
                 hx, hm = range_bearing_jacobians(poses[i], p.lm_mean[i, slots])
                 s = hm @ p.lm_cov[i, slots] @ np.swapaxes(hm, -1, -2) + R
@@ -422,17 +429,25 @@ def test_ml_association_equals_brute_force_over_all_landmarks(rng):
                     assert not new3[i] and c3[i] == c[i]
 
 
-def test_existence_counter_prunes_a_landmark_that_stops_being_seen():
-    est = FastSLAM(FastSLAMConfig(particles=5))  # per-particle ML
+def test_tracks_confirm_and_prune_a_landmark_that_stops_being_seen():
+    # the shared landmark tracks (per particle): tentative until sighted twice, pruned after 3 misses in view
+    est = FastSLAM(FastSLAMConfig(particles=5, confirm_after=2, tentative_max_misses=3, confirmed_max_misses=5))
     est.reset(np.zeros(3), rng=np.random.default_rng(0))
-    est.step(_step(1, [0, 0, 0], [[3.0, 0.0], [7.6, 1.0]], [-1, -1]))  # second one: beyond 90% of max range
-    assert len(est.estimate().landmarks) == 2
-    est.step(_step(2, [0, 0, 0]))
-    assert len(est.estimate().landmarks) == 2  # evidence 2 -> 1
-    est.step(_step(3, [0, 0, 0]))
+    # second one: beyond max_range - view_margin (7.5 m), so never "should have been seen"
+    est.step(_step(1, [0, 0, 0], [[3.0, 0.0], [7.6, 1.0]], [-1, -1]))
     snap = est.estimate()
-    assert len(snap.landmarks) == 1  # the near one is gone; the far one was never "should have been seen"
-    assert np.hypot(*snap.landmarks[0]) == pytest.approx(7.6, abs=0.5)
+    assert len(snap.landmarks) == 0 and len(snap.tentative_landmarks) == 2
+    for t in (2, 3):
+        est.step(_step(t, [0, 0, 0]))
+        assert len(est.estimate().tentative_landmarks) == 2  # misses 1, 2
+    est.step(_step(4, [0, 0, 0]))
+    snap = est.estimate()
+    assert len(snap.tentative_landmarks) == 1  # the near one is gone after 3 misses; the far one stays
+    assert np.hypot(*snap.tentative_landmarks[0]) == pytest.approx(7.6, abs=0.5)
+    est.step(_step(5, [0, 0, 0], [[7.6, 1.0]], [-1]))
+    snap = est.estimate()
+    assert len(snap.landmarks) == 1 and len(snap.tentative_landmarks) == 0  # sighted twice: confirmed
+    assert np.all(est.particles.tracks.confirmed.sum(axis=1) == 1)
 
 
 # --------------------------------------------------------------------------------------------------- whole runs
@@ -507,7 +522,7 @@ def test_batched_known_update_equals_the_per_observation_loop():
     np.testing.assert_allclose(out[0][0], out[1][0], rtol=0, atol=1e-12)
     np.testing.assert_allclose(out[0][1].lm_mean, out[1][1].lm_mean, rtol=0, atol=1e-12)
     np.testing.assert_allclose(out[0][1].lm_cov, out[1][1].lm_cov, rtol=0, atol=1e-15)
-    np.testing.assert_array_equal(out[0][1].lm_evidence, out[1][1].lm_evidence)
+    np.testing.assert_array_equal(out[0][1].tracks.hits, out[1][1].tracks.hits)
 
 
 @pytest.mark.parametrize("method", ["known", "mahalanobis"])

@@ -8,6 +8,7 @@ from slam2d.association.base import AssociationConfig as AssociationConfig
 from slam2d.association.base import AssociationResult as AssociationResult
 from slam2d.association.base import Candidates as Candidates
 from slam2d.association.base import associate_known as associate_known
+from slam2d.association.base import resolve_method as resolve_method
 from slam2d.association.gating import gate_thresholds as gate_thresholds
 from slam2d.association.gating import joint_thresholds as joint_thresholds
 from slam2d.association.predict import candidates_from_belief as candidates_from_belief

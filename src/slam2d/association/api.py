@@ -43,6 +43,9 @@ def associate(observations: Observations, candidates: Candidates, config: Associ
 
     Shapes: observations K, candidates L -> assignment (K,), d2 (K,).
     """
+    if config.method == "auto":
+        raise ValueError("AssociationConfig.method 'auto' must be resolved first (resolve_method: known ids or "
+                         "not) by the back end or the runner")
     problem = build_problem(observations, candidates, config)
     if config.method == "known":
         return _known(problem, observations, candidates, config.known_outlier_gate)

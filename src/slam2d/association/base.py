@@ -7,7 +7,7 @@ or that it starts a new landmark (``NEW``), or that it is clutter to ignore (``C
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -24,15 +24,20 @@ NEW = -1
 #: assignment value: the observation is ignored (clutter, a moving object, or too ambiguous to use)
 CLUTTER = -2
 
+#: the concrete methods (``AssociationConfig.method`` also accepts ``auto``, which back ends resolve to one of these)
 METHODS = ("known", "nn", "mahalanobis", "jcbb", "ransac")
+
+#: what ``auto`` becomes on data without landmark ids (measured on MRCLAM robots 1-3 with the ids withheld)
+AUTO_WITHOUT_IDS: Literal["mahalanobis"] = "mahalanobis"
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
 class AssociationConfig:
     """How observations are matched to landmarks."""
 
-    method: Literal["known", "nn", "mahalanobis", "jcbb", "ransac"] = "mahalanobis"
-    """known (oracle ids), nn (Euclidean in measurement space), mahalanobis (individual compatibility with
+    method: Literal["auto", "known", "nn", "mahalanobis", "jcbb", "ransac"] = "mahalanobis"
+    """auto (``known`` when the data carry landmark ids, else ``AUTO_WITHOUT_IDS``; see :func:`resolve_method`),
+    known (oracle ids), nn (Euclidean in measurement space), mahalanobis (individual compatibility with
     mutual exclusion), jcbb (joint compatibility branch and bound), ransac (consensus over minimal sets)."""
     gate_probability: float = 0.99
     """a correct match passes the chi-square gate with this probability."""
@@ -60,7 +65,8 @@ class AssociationConfig:
     def __post_init__(self) -> None:
         from slam2d.config import _coerce  # local: avoid a cycle at import time
 
-        _coerce(self.method, Literal["known", "nn", "mahalanobis", "jcbb", "ransac"], "AssociationConfig.method")
+        _coerce(self.method, Literal["auto", "known", "nn", "mahalanobis", "jcbb", "ransac"],
+                "AssociationConfig.method")
         check_probability(self, "gate_probability", "new_landmark_probability", open_low=True)
         for name in ("gate_probability", "new_landmark_probability"):
             if getattr(self, name) >= 1.0:
@@ -78,6 +84,19 @@ class AssociationConfig:
         if self.jcbb_time_budget_s is not None and not self.jcbb_time_budget_s >= 0.0:
             raise ValueError("AssociationConfig.jcbb_time_budget_s must be >= 0 or None "
                              f"(got {self.jcbb_time_budget_s})")
+
+
+def resolve_method(config: AssociationConfig, has_ids: bool) -> AssociationConfig:
+    """``config`` with ``auto`` replaced by the method it means: ``known`` when the data carry landmark ids (some
+    observation has an id >= 0), else ``AUTO_WITHOUT_IDS``. Any other method is returned unchanged.
+
+    Who decides ``has_ids``: the runner looks at the whole log (``Log.obs_id``) before building the estimator; a back
+    end that still holds ``auto`` (built without a log, e.g. from Python) resolves it at its first step that has
+    observations, from that step's ids.
+    """
+    if config.method != "auto":
+        return config
+    return replace(config, method="known") if has_ids else replace(config, method=AUTO_WITHOUT_IDS)
 
 
 @dataclass(frozen=True)

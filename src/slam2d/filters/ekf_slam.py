@@ -1,25 +1,12 @@
 """EKF-SLAM: one Gaussian over the robot pose and every landmark, with range-bearing updates and a GPS fix.
 
-State layout: ``mu = [x, y, theta, l0x, l0y, l1x, l1y, ...]`` (3 + 2N,), covariance ``P`` (3+2N, 3+2N); landmark
-``j`` lives at rows ``3+2j, 4+2j``. The heading ``mu[2]`` is kept wrapped to [-pi, pi).
+The maths lives in the pure kernels of :mod:`slam2d.filters.ekf_kernels` (state layout, costs, the covariance
+guard; re-exported here); this module is the estimator shell. The shell either re-raises a
+:class:`CovarianceError` (``covariance_guard="raise"``) or repairs P with :func:`repair_covariance` (counted in the
+snapshot's ``covariance_repairs``) and retries the update once (``covariance_guard="repair"``, the default).
 
-Costs (n = 3 + 2N):
-
-* predict touches only the three robot rows/columns: O(N) (Probabilistic Robotics, table 10.1, lines 3-5);
-* one observation update reads the 5 rows of P its sparse 2x5 Jacobian touches (P is symmetric, so rows are the
-  columns ``P H^T`` needs), builds ``B = H P[idx, :]`` (m, n), ``S = B[:, idx] H^T + R`` and applies the rank-m
-  symmetric update ``P <- P - A A^T`` with ``A = B^T L^-T`` (``S = L L^T``). With the optimal gain this equals the
-  Joseph form ``(I-KH) P (I-KH)^T + K R K^T`` exactly (a test checks it against the dense Joseph form) and keeps
-  P symmetric (bit-for-bit in the tests: entry (i,j) and (j,i) are the same products). It is O(n^2): one BLAS
-  ``dgemm`` pass over P in place; never a dense n x n product;
-* augmentation (:func:`augment_state`) and removal copy P once: O(n^2).
-
-Numerical guard (documented rule, see :class:`CovarianceError`): before an update the rows that the update reads
-are compared with the matching columns (symmetry, O(n)) and the touched block must be positive semi-definite (an
-eigenvalue check of at most 5 x 5); after it, every diagonal entry must be finite and >= 0 (O(n)). A violation
-raises :class:`CovarianceError`. The :class:`EKFSLAM` shell either re-raises it (``covariance_guard="raise"``) or
-repairs P with :func:`repair_covariance` (symmetrise, clip eigenvalues to a floor; O(n^3), counted in the snapshot's
-``covariance_repairs``) and retries the update once (``covariance_guard="repair"``, the default).
+Landmark bookkeeping (tentative / confirmed / missed / pruned, the in-view rule, detection-probability scaling)
+is the shared :class:`~slam2d.association.tracks.LandmarkTracks` with one map (M = 1), its slots in state order.
 
 Bad observations (NaN/inf range or bearing, negative range) raise ``ValueError`` naming the step and observation
 (``bad_observation="raise"``, the default), or are dropped and counted (``bad_observation="drop"``).
@@ -27,336 +14,66 @@ Bad observations (NaN/inf range or bearing, negative range) raise ``ValueError``
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
-from scipy.linalg import blas
+from numpy.typing import NDArray
 
-from slam2d.association import CLUTTER, NEW, AssociationConfig, AssociationResult, Candidates, associate
+from slam2d.association import CLUTTER, NEW, AssociationConfig, AssociationResult, Candidates, resolve_method
 from slam2d.association.gating import gate_thresholds, innovations, mahalanobis_matrix
-from slam2d.association.predict import innovation_covariance, joint_innovation_covariance
+from slam2d.association.tracks import LandmarkTracks, TrackConfig, in_view
 from slam2d.config import check_nonnegative, check_positive
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle
-from slam2d.geometry.angles import wrap_angle, wrap_angle_scalar
-from slam2d.log import Observations, Step
-from slam2d.models.motion import MotionNoise, odometry_covariance_scalar, odometry_scalar
-from slam2d.models.sensors import (
-    SensorConfig,
-    absolute_position,
-    absolute_position_jacobians,
-    range_bearing,
-    range_bearing_inverse,
-    range_bearing_inverse_jacobians,
-    range_bearing_jacobians,
+from slam2d.filters.ekf_kernels import (
+    POSE_DIM,
+    CovarianceError,
+    augment_linearized,
+    augment_state,
+    augment_state_batch,
+    check_observations,
+    ekf_predict,
+    ekf_predict_linearized,
+    ekf_update,
+    ekf_update_position,
+    ekf_update_range_bearing,
+    odometry_covariance_scalar,
+    odometry_scalar,
+    predict_landmarks,
     range_bearing_scalar,
+    remove_landmarks,
+    repair_covariance,
+    run_association,
 )
+from slam2d.log import Observations, Step
+from slam2d.models.motion import MotionNoise
+from slam2d.models.sensors import SensorConfig, range_bearing, range_bearing_inverse, range_bearing_inverse_jacobians
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-POSE_DIM = 3
-
-
-class CovarianceError(ValueError):
-    """The covariance lost symmetry or positive semi-definiteness (or became non-finite).
-
-    ``applied`` tells whether the failing operation had already modified the state (post-update check) or not
-    (pre-update check), so a caller that repairs P knows whether to retry.
-    """
-
-    def __init__(self, message: str, *, applied: bool = False) -> None:
-        super().__init__(message)
-        self.applied = applied
-
-
-# ---------------------------------------------------------------------------------------------------- validation
-def _check_state(mu: Array, P: Array) -> int:
-    n = mu.shape[0]
-    if mu.ndim != 1 or n < POSE_DIM or (n - POSE_DIM) % 2:
-        raise ValueError(f"mu must have shape (3+2N,), got {mu.shape}")
-    if P.shape != (n, n):
-        raise ValueError(f"P must have shape ({n}, {n}) to match mu, got {P.shape}")
-    return n
-
-
-def check_observations(z_range: ArrayLike, z_bearing: ArrayLike, *, where: str = "observation") -> None:
-    """Raise ``ValueError`` naming the first bad entry: non-finite range/bearing or a negative range."""
-    r = np.atleast_1d(np.asarray(z_range, dtype=np.float64))
-    b = np.atleast_1d(np.asarray(z_bearing, dtype=np.float64))
-    bad = ~np.isfinite(r) | ~np.isfinite(b) | (r < 0)
-    if np.any(bad):
-        k = int(np.flatnonzero(bad)[0])
-        raise ValueError(f"{where} {k}: range_m={r[k]!r}, bearing_rad={b[k]!r} (must be finite, range >= 0)")
-
-
-def _check_noise(R: Array, name: str, m: int) -> Array:
-    R = np.asarray(R, dtype=np.float64)
-    if R.shape != (m, m) or not np.all(np.isfinite(R)):
-        raise ValueError(f"{name} must be a finite ({m}, {m}) matrix, got shape {R.shape}")
-    if not np.allclose(R, R.T, rtol=1e-12, atol=1e-15) or np.any(np.linalg.eigvalsh(R) <= 0):
-        raise ValueError(f"{name} must be symmetric positive definite")
-    return R
-
-
-def repair_covariance(P: Array, *, min_eig: float | None = None) -> Array:
-    """The documented repair rule: symmetrise, then clip eigenvalues to ``min_eig``. O(n^3); returns a new array.
-
-    ``min_eig`` defaults to ``1e-12 * max(1, max |diag|)``. Shapes: (n,n) -> (n,n).
-    """
-    P = np.asarray(P, dtype=np.float64)
-    if not np.all(np.isfinite(P)):
-        raise CovarianceError("covariance has non-finite entries; it cannot be repaired")
-    sym = 0.5 * (P + P.T)
-    floor = 1e-12 * max(1.0, float(np.max(np.abs(np.diag(sym))))) if min_eig is None else float(min_eig)
-    w, v = np.linalg.eigh(sym)
-    out = (v * np.maximum(w, floor)) @ v.T
-    return np.ascontiguousarray(0.5 * (out + out.T))
-
-
-# ---------------------------------------------------------------------------------------------------- predict
-def ekf_predict_linearized(mu: Array, P: Array, pose_new: Array, G: Array, Q_pose: Array, *,
-                           inplace: bool = False) -> tuple[Array, Array]:
-    """Prediction with a given robot Jacobian ``G`` (3,3) and pose-space noise ``Q_pose`` (3,3).
-
-    Only the robot rows/columns change: ``P_rr <- G P_rr G^T + Q``, ``P_rm <- G P_rm``; O(N) with ``inplace``
-    (without it the copy of P costs O(N^2)). Shapes: (n,),(n,n),(3,),(3,3),(3,3) -> (n,),(n,n).
-    """
-    mu, P = np.asarray(mu, dtype=np.float64), np.asarray(P, dtype=np.float64)
-    _check_state(mu, P)
-    if not inplace:
-        mu, P = mu.copy(), P.copy()
-    cross = G @ P[:POSE_DIM, POSE_DIM:]
-    P[:POSE_DIM, POSE_DIM:] = cross
-    P[POSE_DIM:, :POSE_DIM] = cross.T
-    prr = G @ P[:POSE_DIM, :POSE_DIM] @ G.T + Q_pose
-    P[:POSE_DIM, :POSE_DIM] = 0.5 * (prr + prr.T)
-    mu[:POSE_DIM] = pose_new
-    mu[2] = wrap_angle(mu[2])
-    return mu, P
-
-
-def ekf_predict(mu: Array, P: Array, u: Array, noise: MotionNoise, *, inplace: bool = False) -> tuple[Array, Array]:
-    """Odometry prediction ``x <- x (+) u`` with ``Q = V Q_u V^T`` (Probabilistic Robotics sec. 10.2).
-
-    Shapes: (n,),(n,n),(3,) -> (n,),(n,n).
-    """
-    mu = np.asarray(mu, dtype=np.float64)
-    u = np.asarray(u, dtype=np.float64)
-    if u.shape != (3,) or not np.all(np.isfinite(u)):
-        raise ValueError(f"odometry must be 3 finite numbers [dx, dy, dtheta], got {u!r}")
-    new, g, v = odometry_scalar(mu[:POSE_DIM], u)
-    q = v @ odometry_covariance_scalar(u, noise) @ v.T
-    return ekf_predict_linearized(mu, P, new, g, q, inplace=inplace)
-
-
-# ---------------------------------------------------------------------------------------------------- update
-def _low_rank_downdate(P: Array, At: Array) -> None:
-    """``P -= At^T At`` in place (At is (m, n)): one dgemm pass over P, exactly symmetric for symmetric P."""
-    if P.flags.c_contiguous:
-        # P.T is a Fortran-ordered view of the same memory: BLAS overwrites it without a copy
-        out = blas.dgemm(-1.0, At, At, 1.0, P.T, trans_a=1, overwrite_c=1)
-        if np.shares_memory(out, P):
-            return
-        P[...] = out.T  # pragma: no cover - BLAS wrapper declined to work in place
-    else:
-        P -= At.T @ At
-
-
-def _inverse_cholesky(S: Array) -> Array:
-    """``L^-1`` for ``S = L L^T`` (m x m); closed form for m = 2 (the per-observation case). Raises CovarianceError."""
-    if S.shape == (2, 2):
-        a, b, d = float(S[0, 0]), float(S[1, 0]), float(S[1, 1])
-        if a > 0.0:
-            l11 = math.sqrt(a)
-            l21 = b / l11
-            rest = d - l21 * l21
-            if rest > 0.0:
-                l22 = math.sqrt(rest)
-                return np.array([[1.0 / l11, 0.0], [-l21 / (l11 * l22), 1.0 / l22]])
-    else:
-        try:
-            return np.asarray(np.linalg.inv(np.linalg.cholesky(S)))
-        except np.linalg.LinAlgError:
-            pass
-    raise CovarianceError(f"innovation covariance S is not positive definite: {S.tolist()}")
-
-
-def ekf_update(mu: Array, P: Array, idx: ArrayLike, H: Array, nu: Array, R: Array, *,
-               inplace: bool = False, check: bool = True) -> tuple[Array, Array]:
-    """Kalman update with a Jacobian that is nonzero only on the state entries ``idx`` (k,).
-
-    ``H`` (m,k) is the nonzero block, ``nu`` (m,) the innovation (angles already wrapped), ``R`` (m,m). Cost
-    O(m n + m^2 n): rows ``P[idx, :]`` give ``B = H P[idx,:] = (P H^T)^T``; ``S = B[:, idx] H^T + R``;
-    ``mu += B^T S^-1 nu``; ``P -= A A^T`` with ``A = B^T L^-T`` (``S = L L^T``) which is the Joseph form with the
-    optimal gain. ``check`` runs the guard described in the module docstring (raises :class:`CovarianceError`).
-    Shapes: (n,),(n,n),(k,),(m,k),(m,),(m,m) -> (n,),(n,n).
-    """
-    mu, P = np.asarray(mu, dtype=np.float64), np.asarray(P, dtype=np.float64)
-    idx = np.asarray(idx, dtype=np.intp)
-    rows = P[idx, :]
-    if check:
-        if not math.isfinite(float(np.sum(rows))):
-            raise CovarianceError(f"covariance rows {idx.tolist()} are not finite")
-        scale = max(1.0, float(np.max(np.abs(rows))))
-        asym = float(np.max(np.abs(rows - P[:, idx].T)))
-        if asym > 1e-9 * scale:
-            raise CovarianceError(f"covariance is not symmetric in rows {idx.tolist()} (max |P - P^T| = {asym:.3g})")
-        block = rows[:, idx]
-        eig_min = float(np.linalg.eigvalsh(0.5 * (block + block.T))[0])
-        if eig_min < -1e-9 * scale:
-            raise CovarianceError(f"covariance block {idx.tolist()} is not positive semi-definite "
-                                  f"(smallest eigenvalue {eig_min:.3g})")
-    B = H @ rows
-    S = B[:, idx] @ H.T + R
-    l_inv = _inverse_cholesky(0.5 * (S + S.T))
-    At = l_inv @ B
-    w = l_inv @ np.asarray(nu, dtype=np.float64)
-    if not inplace:
-        mu, P = mu.copy(), P.copy()
-    mu += At.T @ w
-    mu[2] = wrap_angle_scalar(mu[2])
-    _low_rank_downdate(P, At)
-    if check:
-        d = np.diagonal(P)
-        if not (np.all(np.isfinite(d)) and float(np.min(d)) >= 0.0):
-            k = int(np.argmin(np.where(np.isfinite(d), d, -np.inf)))
-            raise CovarianceError(f"update left P[{k},{k}] = {d[k]!r} (must be finite and >= 0)", applied=True)
-    return mu, P
-
-
-
-
-def range_bearing_block(mu: Array, j: int) -> tuple[Array, Array, IntArray]:
-    """Predicted measurement of landmark ``j``, its nonzero Jacobian block (2,5) and the state indices it touches."""
-    a = POSE_DIM + 2 * int(j)
-    z_pred, H = range_bearing_scalar(mu[:POSE_DIM], mu[a:a + 2])
-    return z_pred, H, np.array([0, 1, 2, a, a + 1], dtype=np.int64)
-
-
-def ekf_update_range_bearing(mu: Array, P: Array, j: int, z: ArrayLike, R: Array, *,
-                             inplace: bool = False, check: bool = True) -> tuple[Array, Array]:
-    """Update with one [range, bearing] observation ``z`` of landmark ``j`` (noise ``R`` (2,2)). O(N^2)."""
-    mu = np.asarray(mu, dtype=np.float64)
-    n = mu.shape[0]
-    if P.shape != (n, n) or n < POSE_DIM or (n - POSE_DIM) % 2:
-        _check_state(mu, np.asarray(P))
-    if not 0 <= j < (n - POSE_DIM) // 2:
-        raise IndexError(f"landmark index {j} out of range 0..{(n - POSE_DIM) // 2 - 1}")
-    zz = np.asarray(z, dtype=np.float64)
-    zr, zb = float(zz[0]), float(zz[1])
-    if not (math.isfinite(zr) and math.isfinite(zb) and zr >= 0):
-        check_observations(zr, zb)
-    z_pred, H, idx = range_bearing_block(mu, j)
-    nu = np.array([zr - z_pred[0], wrap_angle_scalar(zb - z_pred[1])])
-    return ekf_update(mu, P, idx, H, nu, R, inplace=inplace, check=check)
-
-
-def ekf_update_position(mu: Array, P: Array, z_xy: ArrayLike, R_gps: Array, *,
-                        inplace: bool = False, check: bool = True) -> tuple[Array, Array]:
-    """Absolute position (GPS) update: ``z = [x, y] + noise``; corrects every landmark through the correlations."""
-    mu = np.asarray(mu, dtype=np.float64)
-    _check_state(mu, np.asarray(P))
-    z = np.asarray(z_xy, dtype=np.float64)
-    if z.shape != (2,) or not np.all(np.isfinite(z)):
-        raise ValueError(f"GPS fix must be 2 finite numbers [x, y], got {z!r}")
-    (h,) = absolute_position_jacobians(mu[:POSE_DIM])
-    nu = z - absolute_position(mu[:POSE_DIM])
-    return ekf_update(mu, P, np.arange(POSE_DIM), h, nu, R_gps, inplace=inplace, check=check)
-
-
-# ---------------------------------------------------------------------------------------------------- augment/remove
-def augment_linearized(mu: Array, P: Array, l_new: Array, G_r: Array, G_z: Array, R: Array) -> tuple[Array, Array]:
-    """Append landmarks ``l_new`` (k,2) initialised from the robot with Jacobians ``G_r`` (k,2,3), ``G_z`` (k,2,2).
-
-    New cross-covariance rows ``G_r P[:3, :]``; new block ``G_r P_rr G_r^T + G_z R G_z^T`` (with the landmarks'
-    mutual correlation ``G_ri P_rr G_rj^T`` when several are added at once). O(n^2): P is copied once.
-    Shapes: (n,),(n,n) -> (n+2k,),(n+2k,n+2k).
-    """
-    n = _check_state(mu, P)
-    k = l_new.shape[0]
-    gr = G_r.reshape(2 * k, POSE_DIM)
-    cross = gr @ P[:POSE_DIM, :]  # (2k, n)
-    new = gr @ P[:POSE_DIM, :POSE_DIM] @ gr.T
-    ar = np.arange(k)
-    new.reshape(k, 2, k, 2)[ar, :, ar, :] += G_z @ R @ np.swapaxes(G_z, -1, -2)  # measurement noise: own blocks
-    P_new = np.empty((n + 2 * k, n + 2 * k))
-    P_new[:n, :n] = P
-    P_new[n:, :n] = cross
-    P_new[:n, n:] = cross.T
-    P_new[n:, n:] = 0.5 * (new + new.T)
-    return np.concatenate([mu, l_new.reshape(-1)]), P_new
-
-
-def augment_state_batch(mu: Array, P: Array, z: ArrayLike, R_obs: Array) -> tuple[Array, Array]:
-    """Append one landmark per [range, bearing] row of ``z`` (k,2), all seen from the current pose. O(n^2)."""
-    mu, P = np.asarray(mu, dtype=np.float64), np.asarray(P, dtype=np.float64)
-    _check_state(mu, P)
-    z = np.asarray(z, dtype=np.float64).reshape(-1, 2)
-    check_observations(z[:, 0], z[:, 1])
-    R_obs = _check_noise(R_obs, "R_obs", 2)
-    pose = np.broadcast_to(mu[:POSE_DIM], (z.shape[0], POSE_DIM))
-    g_r, g_z = range_bearing_inverse_jacobians(pose, z)
-    return augment_linearized(mu, P, range_bearing_inverse(pose, z), g_r, g_z, R_obs)
-
-
-def augment_state(mu: Array, P: Array, z_range: float, z_bearing: float, R_obs: Array) -> tuple[Array, Array]:
-    """Add a landmark seen at ``(z_range, z_bearing)`` from the robot pose ``mu[:3]`` to the state.
-
-    The landmark is the inverse observation model ``l = [x + r cos(theta + b), y + r sin(theta + b)]``; its
-    cross-covariance with everything already in the state is ``G_r P[:3, :]`` and its own block is
-    ``G_r P_rr G_r^T + G_z R G_z^T`` (``G_r``, ``G_z``: Jacobians of the inverse model w.r.t. pose and measurement).
-    Shapes: mu (n,), P (n,n), R_obs (2,2) -> (n+2,), (n+2,n+2).
-    """
-    return augment_state_batch(mu, P, np.array([[z_range, z_bearing]], dtype=np.float64), R_obs)
-
-
-def remove_landmarks(mu: Array, P: Array, js: ArrayLike) -> tuple[Array, Array]:
-    """Drop landmarks ``js`` (marginalise them out: delete their rows and columns). O(n^2)."""
-    n = _check_state(mu, P)
-    js = np.asarray(js, dtype=np.int64).reshape(-1)
-    keep = np.ones(n, dtype=bool)
-    for off in (0, 1):
-        keep[POSE_DIM + 2 * js + off] = False
-    k = np.flatnonzero(keep)
-    return mu[k].copy(), np.ascontiguousarray(P[np.ix_(k, k)])
-
-
-# ---------------------------------------------------------------------------------------------------- candidates
-def predict_landmarks(mu: Array, P: Array, js: ArrayLike, R: Array, *,
-                      joint: bool = False) -> tuple[Array, Array, Array | None]:
-    """Predicted measurements of landmarks ``js`` (L,) with innovation covariances, vectorised.
-
-    Returns ``z_pred`` (L,2), ``S`` (L,2,2) and, with ``joint``, ``S_joint`` (2L,2L): the joint innovation
-    covariance built from the pose + candidate sub-block of P only (O(L^2) entries of P, never the whole P).
-    """
-    js = np.asarray(js, dtype=np.int64).reshape(-1)
-    n_l = js.shape[0]
-    pose = mu[:POSE_DIM]
-    lm_idx = (POSE_DIM + 2 * js[:, None] + np.arange(2)).reshape(-1)  # (2L,)
-    lms = mu[lm_idx].reshape(n_l, 2)
-    z_pred = range_bearing(pose, lms).reshape(n_l, 2)
-    hp, hl = range_bearing_jacobians(np.broadcast_to(pose, (n_l, POSE_DIM)), lms)
-    rows = lm_idx.reshape(n_l, 2)
-    if not joint:
-        return z_pred, innovation_covariance(hp, hl, P, rows, R), None
-    return (z_pred, *joint_innovation_covariance(hp, hl, P, rows, R))
-
-
-def run_association(observations: Observations, candidates: Candidates, config: AssociationConfig,
-                    rng: np.random.Generator) -> AssociationResult:
-    """Associate through ``slam2d.association.associate``; an invalid innovation covariance (which can only come
-    from a corrupted P) is reported as a :class:`CovarianceError` so the covariance guard handles it."""
-    try:
-        return associate(observations, candidates, config, rng=rng)
-    except ValueError as e:
-        if "Candidates.S" in str(e):
-            raise CovarianceError(f"association: {e}", applied=False) from None
-        raise
-
-
+__all__ = [
+    "EKFSLAM",
+    "POSE_DIM",
+    "CovarianceError",
+    "EKFConfig",
+    "augment_linearized",
+    "augment_state",
+    "augment_state_batch",
+    "check_observations",
+    "ekf_predict",
+    "ekf_predict_linearized",
+    "ekf_update",
+    "ekf_update_position",
+    "ekf_update_range_bearing",
+    "odometry_covariance_scalar",
+    "odometry_scalar",
+    "predict_landmarks",
+    "range_bearing_scalar",
+    "remove_landmarks",
+    "repair_covariance",
+    "run_association",
+]
 # ---------------------------------------------------------------------------------------------------- estimator
 @dataclass(frozen=True, slots=True, kw_only=True)
 class EKFConfig:
@@ -366,9 +83,9 @@ class EKFConfig:
     """odometry noise assumed by the filter (filled from the log's metadata by the registry)."""
     sensor: SensorConfig = field(default_factory=SensorConfig)
     """range-bearing sensor assumed by the filter (noise, range, field of view; filled from the log's metadata)."""
-    association: AssociationConfig = field(default_factory=lambda: AssociationConfig(method="known"))
-    """data association. Default ``known`` (the source's ids; on data without ids every observation is clutter, so
-    set ``association.method=mahalanobis`` or ``jcbb`` there)."""
+    association: AssociationConfig = field(default_factory=lambda: AssociationConfig(method="auto"))
+    """data association. Default ``auto``: the source's ids when the data carry them, else
+    ``association.AUTO_WITHOUT_IDS`` (see :func:`slam2d.association.resolve_method`)."""
     motion_noise_scale: float = 1.0
     """multiplies every motion-noise variance the filter assumes (< 1: an overconfident filter)."""
     confirm_after: int = 2
@@ -382,6 +99,9 @@ class EKFConfig:
     association confirmed landmarks are never removed (their ids come from the source)."""
     view_margin_m: float = 0.5
     """"well inside the view" means predicted range <= max_range_m - view_margin_m (and inside the field of view)."""
+    dynamic_test: bool = False
+    """the persistence rule of :class:`~slam2d.association.tracks.TrackConfig`: a tentative landmark whose sightings
+    do not agree with one fixed point (chi-square consistency or a significant constant velocity) is dropped."""
     candidate_margin_m: float = 1.0
     """landmarks predicted within max_range_m + this (m) of the robot are association candidates."""
     use_gps: bool = True
@@ -402,11 +122,17 @@ class EKFConfig:
         _coerce(self.covariance_guard, Literal["raise", "repair"], "EKFConfig.covariance_guard")
         check_positive(self, "motion_noise_scale", "gps_std_m")
         check_nonnegative(self, "view_margin_m", "candidate_margin_m")
-        for name in ("confirm_after", "tentative_max_misses", "confirmed_max_misses"):
-            v = getattr(self, name)
-            low = 1 if name == "confirm_after" else 0
-            if not isinstance(v, int | np.integer) or v < low:
-                raise ValueError(f"EKFConfig.{name} must be an integer >= {low} (got {v!r})")
+        try:
+            self.tracks(known=False)
+        except ValueError as e:
+            raise ValueError(f"EKFConfig.{e}") from None
+
+    def tracks(self, *, known: bool) -> TrackConfig:
+        """The landmark-track rules these settings mean; with ``known`` ids a confirmed landmark is never pruned."""
+        return TrackConfig(confirm_after=self.confirm_after, tentative_max_misses=self.tentative_max_misses,
+                           confirmed_max_misses=0 if known else self.confirmed_max_misses,
+                           view_margin_m=self.view_margin_m, misses_per_sighting=self.sensor.misses_per_sighting,
+                           dynamic_test=self.dynamic_test)
 
 
 class EKFSLAM(EstimatorLifecycle):
@@ -430,8 +156,8 @@ class EKFSLAM(EstimatorLifecycle):
         self._mu = np.asarray(pose, dtype=np.float64).copy()
         self._P = np.zeros((POSE_DIM, POSE_DIM))
         self._ids = np.zeros(0, dtype=np.int64)
-        self._hits = np.zeros(0, dtype=np.int64)
-        self._misses = np.zeros(0, dtype=np.int64)
+        self._assoc = self.config.association
+        self._tracks = LandmarkTracks(self.config.tracks(known=self._assoc.method == "known"))
         self._desc: Array | None = None
         self._next_id = 0
         self._last_assoc = np.zeros(0, dtype=np.int64)
@@ -460,6 +186,9 @@ class EKFSLAM(EstimatorLifecycle):
                 raise ValueError(f"step {step.index}: gps must be 2 finite numbers, got {step.gps!r}")
             self._guarded(lambda: ekf_update_position(self._mu, self._P, gps, self._R_gps, inplace=True))
         obs, keep = self._clean(step)
+        if self._assoc.method == "auto" and len(obs):
+            self._assoc = resolve_method(self._assoc, bool(np.any(obs.landmark_id >= 0)))
+            self._tracks.config = self.config.tracks(known=self._assoc.method == "known")
         self._observe(obs, step.index)
         if keep is not None:  # report per original observation; dropped ones as CLUTTER
             full = np.full(keep.shape[0], CLUTTER, dtype=np.int64)
@@ -472,7 +201,7 @@ class EKFSLAM(EstimatorLifecycle):
         lm = self._mu[POSE_DIM:].reshape(n_l, 2)
         idx = (POSE_DIM + 2 * np.arange(n_l)[:, None] + np.arange(2)).reshape(n_l, 2)
         covs = self._P[idx[:, :, None], idx[:, None, :]] if n_l else np.zeros((0, 2, 2))
-        conf = self._hits >= self.config.confirm_after
+        conf = self._tracks.confirmed[0]
         return Estimate(pose=self._mu[:POSE_DIM].copy(), pose_cov=self._P[:POSE_DIM, :POSE_DIM].copy(),
                         landmarks=lm[conf].copy(), landmark_covs=np.ascontiguousarray(covs[conf]),
                         landmark_ids=self._ids[conf].copy(), state_dim=int(self._mu.shape[0]),
@@ -484,6 +213,11 @@ class EKFSLAM(EstimatorLifecycle):
 
     def finalize(self) -> None:
         self._lifecycle_finalize()
+
+    @property
+    def association_method(self) -> str:
+        """The association method in use (``auto`` until the first step with observations resolves it)."""
+        return self._assoc.method
 
     @property
     def state(self) -> tuple[Array, Array, IntArray]:
@@ -521,9 +255,8 @@ class EKFSLAM(EstimatorLifecycle):
         lms = self._mu[POSE_DIM:].reshape(n_l, 2)
         z_all = range_bearing(self._mu[:POSE_DIM], lms).reshape(n_l, 2)
         half_fov = 0.5 * sensor.fov_rad
-        in_view = ((z_all[:, 0] <= sensor.max_range_m - self.config.view_margin_m)
-                   & (np.abs(z_all[:, 1]) <= half_fov - self.config.view_margin_m / np.maximum(z_all[:, 0], 1e-9)))
-        if self.config.association.method == "known":
+        view = in_view(z_all, sensor.max_range_m, sensor.fov_rad, self.config.view_margin_m)
+        if self._assoc.method == "known":
             # known ids must see every landmark in the state, or a drifted one would be duplicated
             js = np.arange(n_l)
             z_pred, S, sj = predict_landmarks(self._mu, self._P, js, self._R)
@@ -534,61 +267,61 @@ class EKFSLAM(EstimatorLifecycle):
             js = np.flatnonzero(near)
             z_pred, S, sj = predict_landmarks(self._mu, self._P, js, self._R, joint=True)
         desc = None if self._desc is None or obs.descriptor is None else self._desc[js]
-        return Candidates(self._ids[js], z_pred, S, sj, desc), js, in_view
+        return Candidates(self._ids[js], z_pred, S, sj, desc), js, view
 
     def _observe(self, obs: Observations, index: int) -> None:
         k = len(obs)
         if k == 0 and self._ids.shape[0] == 0:
             self._last_assoc = np.zeros(0, dtype=np.int64)
             return
-        cands, js, in_view = self._candidates(obs)
+        cands, js, view = self._candidates(obs)
         try:
-            result = run_association(obs, cands, self.config.association, self._rng) if k else \
+            result = run_association(obs, cands, self._assoc, self._rng) if k else \
                 AssociationResult(np.zeros(0, dtype=np.int64), np.zeros(0))
         except CovarianceError:
             if self.config.covariance_guard == "raise":
                 raise
             self._P = repair_covariance(self._P)
             self._repairs += 1
-            cands, js, in_view = self._candidates(obs)
-            result = run_association(obs, cands, self.config.association, self._rng)
+            cands, js, view = self._candidates(obs)
+            result = run_association(obs, cands, self._assoc, self._rng)
         assign = np.asarray(result.assignment, dtype=np.int64)
         self._last_assoc = assign.copy()
         z = obs.z
         # --- updates, in observation order
         pos = {int(i): p for p, i in enumerate(self._ids)}
-        matched = np.zeros(self._ids.shape[0], dtype=bool)
-        for o in np.flatnonzero(assign >= 0):  # one O(N^2) update per observation
-            j = pos[int(assign[o])]
+        used = np.flatnonzero(assign >= 0)
+        sighted = np.array([pos[int(a)] for a in assign[used]], dtype=np.int64)
+        for o, j in zip(used, sighted, strict=True):  # one O(N^2) update per observation
             self._guarded(lambda j=j, o=o: ekf_update_range_bearing(self._mu, self._P, j, z[o], self._R,
                                                                      inplace=True))
-            self._hits[j] += 1
-            matched[j] = True
-            if obs.descriptor is not None and self._desc is not None:
-                self._desc[j] += (obs.descriptor[o] - self._desc[j]) / self._hits[j]
+        if obs.descriptor is not None and self._desc is not None:
+            count = self._tracks.hits[0].copy()
+            for o, j in zip(used, sighted, strict=True):  # running mean, in observation order
+                count[j] += 1
+                self._desc[j] += (obs.descriptor[o] - self._desc[j]) / count[j]
+        self._tracks.sight(sighted, index, *self._sightings(z[used]))
         # a miss is negative information: nothing was seen where the landmark should be. An observation inside the
         # landmark's wide gate that was left unmatched (ambiguous) is not a miss, only an unused sighting
         seen = np.zeros(self._ids.shape[0], dtype=bool)
-        if k and js.size and self.config.association.method != "known":
-            near = mahalanobis_matrix(innovations(z, cands.z_pred), cands.S) <= gate_thresholds(
-                self.config.association)[1]
+        if k and js.size and self._assoc.method != "known":
+            near = mahalanobis_matrix(innovations(z, cands.z_pred), cands.S) <= gate_thresholds(self._assoc)[1]
             seen[js] = near.any(axis=0)
-        self._misses = np.where(matched, 0, np.where(in_view & ~seen, self._misses + 1, self._misses))
+        self._tracks.miss((view & ~seen)[None], index)
         # --- new landmarks (a repeated id in one scan is added once)
         new = np.flatnonzero(assign == NEW)
-        if self.config.association.method == "known" and new.size:
+        if self._assoc.method == "known" and new.size:
             _, first = np.unique(obs.landmark_id[new], return_index=True)
             new = new[np.sort(first)]
         if new.size:
             self._mu, self._P = augment_state_batch(self._mu, self._P, z[new], self._R)
-            if self.config.association.method == "known":
+            if self._assoc.method == "known":
                 ids = obs.landmark_id[new].astype(np.int64)
             else:
                 ids = self._next_id + np.arange(new.size, dtype=np.int64)
                 self._next_id += new.size
             self._ids = np.concatenate([self._ids, ids])
-            self._hits = np.concatenate([self._hits, np.ones(new.size, dtype=np.int64)])
-            self._misses = np.concatenate([self._misses, np.zeros(new.size, dtype=np.int64)])
+            self._tracks.append(new.size, index, *self._sightings(z[new]))
             # descriptors are kept only when the source gives them from the first landmark on
             n_before = self._ids.shape[0] - new.size
             if obs.descriptor is not None and (self._desc is not None or n_before == 0):
@@ -598,22 +331,25 @@ class EKFSLAM(EstimatorLifecycle):
                 self._desc = np.vstack([self._desc, np.full((new.size, self._desc.shape[1]), np.nan)])
         self._prune()
 
+    def _sightings(self, z: Array) -> tuple[Array | None, Array | None]:
+        """World points of observations z (k,2) from the current pose and their covariances G_z R G_z^T (pose taken
+        as exact), for the tracks' persistence rule; (None, None) when the rule is off."""
+        if not self.config.dynamic_test:
+            return None, None
+        pose = np.broadcast_to(self._mu[:POSE_DIM], (len(z), POSE_DIM))
+        _, gz = range_bearing_inverse_jacobians(pose, z)
+        return range_bearing_inverse(pose, z), gz @ self._R @ np.swapaxes(gz, 1, 2)
+
     def _prune(self) -> None:
-        cfg = self.config
-        tentative = self._hits < cfg.confirm_after
-        drop = np.zeros(self._ids.shape[0], dtype=bool)
-        # a sensor that reports a visible landmark only with probability p_d needs 1/p_d times more misses to say
-        # as much; a confirmed landmark with a source id (known association) is never spurious, so it stays
-        scale = cfg.sensor.misses_per_sighting
-        if cfg.tentative_max_misses:
-            drop |= tentative & (self._misses >= np.ceil(cfg.tentative_max_misses * scale))
-        if cfg.confirmed_max_misses and cfg.association.method != "known":
-            drop |= ~tentative & (self._misses >= np.ceil(cfg.confirmed_max_misses * scale))
+        """Remove the landmarks the tracks say are over their miss limit (or dynamic). With known association a
+        confirmed landmark stays (its id comes from the source, see :meth:`EKFConfig.tracks`)."""
+        drop = self._tracks.prune_mask()[0]
         if not np.any(drop):
             return
         self._mu, self._P = remove_landmarks(self._mu, self._P, np.flatnonzero(drop))
         keep = ~drop
-        self._ids, self._hits, self._misses = self._ids[keep], self._hits[keep], self._misses[keep]
+        self._ids = self._ids[keep]
+        self._tracks.keep(keep)
         if self._desc is not None:
             self._desc = self._desc[keep]
         self._removed += int(np.sum(drop))

@@ -32,7 +32,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 import slam2d.association as association
-from slam2d.association import CLUTTER, NEW, AssociationConfig, Candidates, candidates_from_belief
+from slam2d.association import CLUTTER, NEW, AssociationConfig, Candidates, candidates_from_belief, resolve_method
+from slam2d.association.tracks import LandmarkTracks, TrackConfig, in_view
 from slam2d.config import check_nonnegative, check_positive
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, GraphView, LoopEvent
 from slam2d.frontend.loop_closure import LoopCloser
@@ -44,6 +45,7 @@ from slam2d.graph.graph import FactorGraph, Values
 from slam2d.graph.local_belief import LocalBelief
 from slam2d.graph.marginals import marginal_covariances
 from slam2d.graph.optimizer import Optimizer, OptimizerConfig
+from slam2d.graph.problem import chi2_per_dof
 from slam2d.log import Step
 from slam2d.models.motion import MotionNoise, odometry_factor
 from slam2d.models.sensors import (
@@ -68,8 +70,9 @@ class GraphSLAMConfig:
     """odometry noise (filled from the log's metadata)."""
     sensor: SensorConfig = field(default_factory=SensorConfig)
     """range-bearing sensor noise and range (filled from the log's metadata)."""
-    association: AssociationConfig = field(default_factory=lambda: AssociationConfig(method="known"))
-    """how observations are matched to landmarks."""
+    association: AssociationConfig = field(default_factory=lambda: AssociationConfig(method="auto"))
+    """how observations are matched to landmarks. Default ``auto``: the source's ids when the data carry them, else
+    ``association.AUTO_WITHOUT_IDS`` (:func:`slam2d.association.resolve_method`)."""
     optimize_every: int = 10
     """re-optimise the whole graph every this many steps (and after every accepted loop closure)."""
     iterations: int = 5
@@ -100,6 +103,8 @@ class GraphSLAMConfig:
     its sightings (0: never). Divided by the sensor's ``detection_prob``, as in EKF-SLAM."""
     view_margin_m: float = 0.5
     """"well inside the view" means predicted range <= max_range_m - view_margin_m (and inside the field of view)."""
+    dynamic_test: bool = False
+    """the tracks' persistence rule: a tentative landmark whose sightings drift (a moving object) is discarded."""
     candidate_margin_m: float = 3.0
     """landmarks predicted within max_range_m + this (m) of the newest pose are association candidates."""
     belief_margin_m: float = 10.0
@@ -108,12 +113,13 @@ class GraphSLAMConfig:
     candidate is outside it, the graph is optimised early (which refreshes the block)."""
 
     def __post_init__(self) -> None:
-        for n in ("optimize_every", "iterations", "final_iterations", "revisit_gap_steps", "keyframe_every",
-                  "confirm_after"):
+        for n in ("optimize_every", "iterations", "final_iterations", "revisit_gap_steps", "keyframe_every"):
             if getattr(self, n) < 1:
                 raise ValueError(f"GraphSLAMConfig.{n} must be >= 1 (got {getattr(self, n)})")
-        if self.tentative_max_misses < 0:
-            raise ValueError(f"GraphSLAMConfig.tentative_max_misses must be >= 0 (got {self.tentative_max_misses})")
+        try:
+            self.tracks()
+        except ValueError as e:
+            raise ValueError(f"GraphSLAMConfig.{e}") from None
         check_positive(self, "odometry_info_scale", "loop_info_scale")
         check_nonnegative(self, "view_margin_m", "candidate_margin_m", "belief_margin_m")
         if not 0 < self.loop_gate_probability < 1:
@@ -122,6 +128,12 @@ class GraphSLAMConfig:
         if self.loop_robust_kernel not in ("none", "huber", "cauchy", "dcs"):
             raise ValueError(f"GraphSLAMConfig.loop_robust_kernel must be none, huber, cauchy or dcs "
                              f"(got {self.loop_robust_kernel!r})")
+
+    def tracks(self) -> TrackConfig:
+        """The track rules of the tentative landmarks (a confirmed one leaves the tracks for the graph)."""
+        return TrackConfig(confirm_after=self.confirm_after, tentative_max_misses=self.tentative_max_misses,
+                           confirmed_max_misses=0, view_margin_m=self.view_margin_m,
+                           misses_per_sighting=self.sensor.misses_per_sighting, dynamic_test=self.dynamic_test)
 
 
 class GraphSLAM(EstimatorLifecycle):
@@ -147,13 +159,14 @@ class GraphSLAM(EstimatorLifecycle):
         self.last_seen: dict[int, int] = {}
         self.alias: dict[int, int] = {}  # source id -> landmark key (loop closure off: forgotten ids re-keyed)
         self.next_key = 0
-        # tentative landmarks (unknown association): key, first sighting (pose key, z), hits, consecutive misses
+        self._assoc = cfg.association  # "auto" is resolved at the first step with observations
+        # tentative landmarks (unknown association): key, first sighting (pose key, z), mean, and their tracks
+        # (sightings, consecutive misses in view; one map, slots aligned with tent_keys)
         self.tent_keys = np.zeros(0, dtype=np.int64)
         self.tent_src = np.zeros(0, dtype=np.int64)
         self.tent_z = np.zeros((0, 2))
         self.tent_pts = np.zeros((0, 2))  # their means: first sighting, then corrected by the local updates
-        self.tent_hits = np.zeros(0, dtype=np.int64)
-        self.tent_misses = np.zeros(0, dtype=np.int64)
+        self.tent_tracks = LandmarkTracks(cfg.tracks())
         # their sightings, held aside until they are confirmed: pose key, landmark key, z
         self.held_pose = np.zeros(0, dtype=np.int64)
         self.held_key = np.zeros(0, dtype=np.int64)
@@ -166,6 +179,11 @@ class GraphSLAM(EstimatorLifecycle):
         self.last_assignment = np.zeros(0, dtype=np.int64)
         self.optimizations = 0
         self._lifecycle_reset()
+
+    @property
+    def association_method(self) -> str:
+        """The association method in use (``auto`` until the first step with observations resolves it)."""
+        return self._assoc.method
 
     @property
     def pose_cov(self) -> Array:
@@ -194,8 +212,10 @@ class GraphSLAM(EstimatorLifecycle):
 
         obs = step.observations
         loop_added = False
+        if self._assoc.method == "auto" and len(obs):
+            self._assoc = resolve_method(self._assoc, bool(np.any(obs.landmark_id >= 0)))
         if len(obs):
-            if cfg.association.method == "known":
+            if self._assoc.method == "known":
                 self._add_landmark_factors(t, pose, obs)
             else:
                 self._observe_unknown(t, obs)
@@ -206,8 +226,8 @@ class GraphSLAM(EstimatorLifecycle):
                     self._remember_keyframe(t, obs.z)
         else:
             self.last_assignment = np.zeros(0, dtype=np.int64)
-            if cfg.association.method != "known" and self.tent_keys.size:
-                drop = self._count_tentative_misses(np.zeros(0, dtype=np.int64))
+            if self._assoc.method != "known" and self.tent_keys.size:
+                drop = self._count_tentative_misses()
                 self._retire_tentatives(np.zeros_like(drop), drop)
         if loop_added or t % cfg.optimize_every == 0:
             self._optimize(cfg.iterations * (4 if loop_added else 1))
@@ -246,24 +266,8 @@ class GraphSLAM(EstimatorLifecycle):
         return added
 
     def chi2_per_dof(self) -> dict[str, float]:
-        """Mean whitened squared error per measurement dimension: odometry, loop and landmark factors separately
-        (about 1 each when the noise models are right; far above 1 flags the factors that are being violated)."""
-        from slam2d.graph.problem import factor_chi2
-
-        out: dict[str, float] = {}
-        for b in self.graph.blocks():
-            if not b.size:
-                continue
-            chi = factor_chi2(self.graph, self.values, b.kind)
-            if b.kind == "between":
-                odo = b.keys[1] == b.keys[0] + 1
-                groups = {"odometry": odo, "loop": ~odo}
-            else:
-                groups = {b.kind: np.ones(b.size, dtype=bool)}
-            for name, mask in groups.items():
-                if np.any(mask):
-                    out[name] = float(chi[mask].sum()) / (int(mask.sum()) * b.z.shape[1])
-        return out
+        """``slam2d.graph.problem.chi2_per_dof`` of the current graph and estimate."""
+        return chi2_per_dof(self.graph, self.values)
 
     def graph_view(self) -> GraphView:
         """Nodes and edges for drawing: pose/point positions and per factor kind the key pairs of its edges."""
@@ -287,7 +291,7 @@ class GraphSLAM(EstimatorLifecycle):
         self.values, _ = self.optimizer.optimize(self.values)
         self.optimizations += 1
         # refresh the uncertainty used by association (landmarks only when it is not the oracle) and the loop gate
-        if self.config.association.method == "known":
+        if self._assoc.method == "known":
             self.belief.set(np.zeros(0, np.int64), self._marginals([int(self.values.pose_keys[-1])]))
         else:
             self._refresh_belief(all_points)
@@ -440,21 +444,24 @@ class GraphSLAM(EstimatorLifecycle):
             break
         return candidates_from_belief(pose, pts, keys, self.belief.select(keys), cfg.sensor.covariance), pts
 
-    def _count_tentative_misses(self, matched: NDArray[np.int64]) -> NDArray[np.bool_]:
-        """Update the tentative landmarks' miss counts (predicted well in view, not matched); returns which are
-        to be discarded."""
+    def _count_tentative_misses(self) -> NDArray[np.bool_]:
+        """One more miss for each tentative landmark predicted well in view and not sighted at this step (the
+        tracks know which were); returns which are to be discarded (over the miss limit, or dynamic)."""
         cfg = self.config
         if self.tent_keys.size == 0:
             return np.zeros(0, dtype=bool)
         zp = range_bearing(self.values.poses[-1], self.tent_pts)
-        half_fov = 0.5 * cfg.sensor.fov_rad
-        in_view = (zp[:, 0] <= cfg.sensor.max_range_m - cfg.view_margin_m) & \
-            (np.abs(zp[:, 1]) <= half_fov - cfg.view_margin_m / np.maximum(zp[:, 0], 1e-9))
-        hit = np.isin(self.tent_keys, matched)
-        self.tent_misses = np.where(hit, 0, np.where(in_view, self.tent_misses + 1, self.tent_misses))
-        if not cfg.tentative_max_misses:
-            return np.zeros(self.tent_keys.size, dtype=bool)
-        return self.tent_misses >= np.ceil(cfg.tentative_max_misses * cfg.sensor.misses_per_sighting)
+        view = in_view(zp, cfg.sensor.max_range_m, cfg.sensor.fov_rad, cfg.view_margin_m)
+        self.tent_tracks.miss(view[None], self.index)
+        return self.tent_tracks.prune_mask()[0]
+
+    def _sightings(self, pose: Array, z: Array) -> tuple[Array | None, Array | None]:
+        """World points of observations z (k,2) from ``pose`` and their covariances G_z R G_z^T (pose taken as exact)
+        for the tracks' persistence rule; (None, None) when the rule is off."""
+        if not self.config.dynamic_test:
+            return None, None
+        _, gz = range_bearing_inverse_jacobians(pose, z)
+        return range_bearing_inverse(pose, z), gz @ self.config.sensor.covariance @ np.swapaxes(gz, 1, 2)
 
     def _retire_tentatives(self, promote: NDArray[np.bool_], drop: NDArray[np.bool_]) -> None:
         """Forget the tentative landmarks that were confirmed (already in the graph) or discarded (also removed from
@@ -470,7 +477,7 @@ class GraphSLAM(EstimatorLifecycle):
         keep = ~gone
         self.tent_keys, self.tent_src, self.tent_z = self.tent_keys[keep], self.tent_src[keep], self.tent_z[keep]
         self.tent_pts = self.tent_pts[keep]
-        self.tent_hits, self.tent_misses = self.tent_hits[keep], self.tent_misses[keep]
+        self.tent_tracks.keep(keep)
 
     def _observe_unknown(self, t: int, obs: Any) -> None:
         """Unknown association against the joint belief; tentative landmarks are held aside until confirmed.
@@ -487,9 +494,13 @@ class GraphSLAM(EstimatorLifecycle):
         assign = self._associate(obs, cands)
         is_tent = np.isin(assign, self.tent_keys) & (assign >= 0)
         conf = (assign >= 0) & ~is_tent
-        hits = np.isin(self.tent_keys, assign[is_tent])
-        self.tent_hits = self.tent_hits + hits
-        promote = self.tent_hits >= cfg.confirm_after
+        # one sighting per tentative landmark and step (its first matching observation)
+        slot_of = np.argsort(self.tent_keys)
+        obs_t = np.flatnonzero(is_tent)
+        cols, first = np.unique(slot_of[np.searchsorted(self.tent_keys, assign[obs_t], sorter=slot_of)],
+                                return_index=True)
+        self.tent_tracks.sight(cols, t, *self._sightings(self.values.poses[-1], z[obs_t[first]]))
+        promote = self.tent_tracks.confirmed[0]
         upd = conf | np.isin(assign, self.tent_keys[promote])
         if np.any(upd):
             self._local_update(assign[upd], z[upd], cands, cand_pts)
@@ -504,16 +515,15 @@ class GraphSLAM(EstimatorLifecycle):
             self.tent_src = np.concatenate([self.tent_src, np.full(new.size, t, dtype=np.int64)])
             self.tent_z = np.concatenate([self.tent_z, z[new]])
             self.tent_pts = np.concatenate([self.tent_pts, range_bearing_inverse(pose, z[new])])
-            self.tent_hits = np.concatenate([self.tent_hits, np.ones(new.size, dtype=np.int64)])
-            self.tent_misses = np.concatenate([self.tent_misses, np.zeros(new.size, dtype=np.int64)])
-            promote = np.concatenate([promote, np.full(new.size, cfg.confirm_after <= 1)])
+            self.tent_tracks.append(new.size, t, *self._sightings(pose, z[new]))
+            promote = self.tent_tracks.confirmed[0]
             is_tent[new] = True
         # sightings of tentative landmarks are held aside until they are confirmed
         hold = np.flatnonzero(is_tent)
         self.held_pose = np.concatenate([self.held_pose, np.full(hold.size, t, dtype=np.int64)])
         self.held_key = np.concatenate([self.held_key, assign[hold]])
         self.held_z = np.concatenate([self.held_z, z[hold]])
-        drop = self._count_tentative_misses(assign[hold]) & ~promote
+        drop = self._count_tentative_misses() & ~promote
         # confirmed: the point and every held sighting join the graph
         f_pose, f_key, f_z = [np.full(int(conf.sum()), t, dtype=np.int64)], [assign[conf]], [z[conf]]
         if np.any(promote):
@@ -553,14 +563,13 @@ class GraphSLAM(EstimatorLifecycle):
 
     def _associate(self, obs: Any, cands: Candidates) -> NDArray[np.int64]:
         """Run the configured association method (every observation is NEW when there is no candidate)."""
-        cfg = self.config
         if cands.ids.size == 0:
             return np.full(len(obs), NEW, dtype=np.int64)
         assoc_fn = getattr(association, "associate", None)
         if assoc_fn is None:
             raise ValueError("not yet implemented: association method "
-                             f"{cfg.association.method!r} needs slam2d.association.associate")
-        return np.asarray(assoc_fn(obs, cands, cfg.association, rng=self.rng).assignment, dtype=np.int64)
+                             f"{self._assoc.method!r} needs slam2d.association.associate")
+        return np.asarray(assoc_fn(obs, cands, self._assoc, rng=self.rng).assignment, dtype=np.int64)
 
     def _remember_keyframe(self, t: int, z: Array) -> None:
         self.loops.add_keyframe(t, *observation_points(z, self.config.sensor.covariance))

@@ -350,3 +350,23 @@ def factor_chi2(graph: FactorGraph, values: Values, kind: str) -> Array:
         if k == kind:
             return s
     return np.zeros(0)
+
+
+def chi2_per_dof(graph: FactorGraph, values: Values) -> dict[str, float]:
+    """Mean whitened squared error per measurement dimension: odometry (between factors of consecutive keys), loop
+    (other between factors) and each other factor type separately (about 1 each when the noise models are right; far
+    above 1 flags the factors that are being violated)."""
+    out: dict[str, float] = {}
+    for b in graph.blocks():
+        if not b.size:
+            continue
+        chi = factor_chi2(graph, values, b.kind)
+        if b.kind == "between":
+            odo = b.keys[1] == b.keys[0] + 1
+            groups = {"odometry": odo, "loop": ~odo}
+        else:
+            groups = {b.kind: np.ones(b.size, dtype=bool)}
+        for name, mask in groups.items():
+            if np.any(mask):
+                out[name] = float(chi[mask].sum()) / (int(mask.sum()) * b.z.shape[1])
+    return out

@@ -12,6 +12,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from slam2d.association.base import AssociationConfig, resolve_method
 from slam2d.config import from_dict, to_dict, with_overrides
 from slam2d.estimator import Estimator
 from slam2d.filters.dead_reckoning import DeadReckoning, DeadReckoningConfig
@@ -80,10 +81,13 @@ def get_spec(name: str) -> EstimatorSpec:
 
 
 def make_config(name: str, overrides: Mapping[str, Any] | None = None,
-                log_metadata: Mapping[str, Any] | None = None) -> Any:
+                log_metadata: Mapping[str, Any] | None = None, *, has_ids: bool | None = None) -> Any:
     """The estimator's config: defaults, then the log's motion/sensor parameters, then ``overrides``.
 
     A log whose ``metadata['gps_role']`` is ``"evaluation"`` turns ``use_gps`` off (overrides may turn it back on).
+    ``has_ids`` (whether the log's observations carry landmark ids, ``Log.obs_id >= 0``) resolves an ``auto``
+    association method (:func:`slam2d.association.resolve_method`); without it ``auto`` stays and the back end
+    resolves it at its first step with observations.
     """
     spec = get_spec(name)
     cfg = spec.config_cls()
@@ -102,10 +106,19 @@ def make_config(name: str, overrides: Mapping[str, Any] | None = None,
         # the log keeps GPS for scoring only (e.g. in its own frame): fuse it only when an override asks for it
         data["use_gps"] = False
     cfg = from_dict(spec.config_cls, data)
-    return with_overrides(cfg, overrides) if overrides else cfg
+    cfg = with_overrides(cfg, overrides) if overrides else cfg
+    if has_ids is not None and isinstance(getattr(cfg, "association", None), AssociationConfig):
+        cfg = dataclasses.replace(cfg, association=resolve_method(cfg.association, has_ids))
+    return cfg
+
+
+def association_method(config: Any) -> str | None:
+    """The association method an estimator config names (None for estimators that do not associate)."""
+    assoc = getattr(config, "association", None)
+    return assoc.method if isinstance(assoc, AssociationConfig) else None
 
 
 def make_estimator(name: str, overrides: Mapping[str, Any] | None = None,
-                   log_metadata: Mapping[str, Any] | None = None) -> Estimator:
+                   log_metadata: Mapping[str, Any] | None = None, *, has_ids: bool | None = None) -> Estimator:
     """Build the named estimator with :func:`make_config`."""
-    return get_spec(name).factory(make_config(name, overrides, log_metadata))
+    return get_spec(name).factory(make_config(name, overrides, log_metadata, has_ids=has_ids))

@@ -16,7 +16,7 @@ from slam2d.estimator import Estimate, Estimator, LoopEvent, SupportsLoopClosure
 from slam2d.eval.association import run_association_scores
 from slam2d.eval.trajectory import ate, rpe
 from slam2d.geometry import se2
-from slam2d.lab.registry import get_spec, make_config
+from slam2d.lab.registry import association_method, get_spec, make_config
 from slam2d.log import Log
 from slam2d.sim.scenarios import ScenarioConfig
 from slam2d.sim.simulator import simulate, spawn_streams
@@ -177,7 +177,8 @@ def run_named(
         log = simulate(cfg, seed)
     else:
         (est_over,) = split_overrides(rest, spec.config_cls)
-    est_cfg = make_config(estimator, {**est_over, **est_only}, log.metadata)
+    # "auto" association is resolved from the whole log: known ids when any observation carries one
+    est_cfg = make_config(estimator, {**est_over, **est_only}, log.metadata, has_ids=bool(np.any(log.obs_id >= 0)))
     est = spec.factory(est_cfg)
     rng = spawn_streams(seed)["estimator"]
     result = run(est, log, rng=rng, keep_snapshots=keep_snapshots, progress=progress)
@@ -185,6 +186,7 @@ def run_named(
         "estimator": estimator,
         "scenario": str(log.metadata.get("scenario", log.metadata.get("dataset", "log"))),
         "seed": int(seed),
+        "association_method": association_method(est_cfg),
         **result.metrics,
         "estimator_config": to_dict(est_cfg),
     }

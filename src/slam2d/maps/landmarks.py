@@ -1,19 +1,16 @@
 """The landmark map: means, covariances, ids and observation counts, with a persistence rule for new landmarks.
 
-:class:`LandmarkMap` is a plain container of stacked arrays (means (N,2), covariances (N,2,2), ids (N,), sighting
-counts, first/last step seen, a ``confirmed`` flag) that any back end can fill and hand to the lab. Its
-:meth:`LandmarkMap.estimate_view` returns the confirmed landmarks only, in the shapes of
-:class:`~slam2d.estimator.Estimate`.
+:class:`LandmarkMap` holds fused means (N,2), covariances (N,2,2) and ids (N,); their life cycle (sighting counts,
+first/last step seen, confirmed, dynamic) is the same :class:`~slam2d.association.tracks.LandmarkTracks` every
+back end uses (one map, M = 1). Its :meth:`LandmarkMap.estimate_view` returns the confirmed landmarks only, in the
+shapes of :class:`~slam2d.estimator.Estimate`.
 
-Persistence (dynamic-object filtering): a new landmark starts *tentative*; it is *confirmed* once it has been
-sighted ``min_sightings`` times and its sightings agree with one fixed point: the weighted residual sum of squares
-of the sightings about their weighted mean, ``chi2 = sum_i (z_i - m)^T R_i^-1 (z_i - m)`` (kept as running sums),
-is below the chi-square quantile with ``2 (n - 1)`` degrees of freedom. A forklift re-observed every step drifts
-away from its own mean by more than the sensor noise explains: it fails the test, is marked ``dynamic`` and is
-never confirmed. Because a slow object drifts by about one noise sigma per step, the generic test is weak against
-it; a second, sharper test fits a constant-velocity line ``z(t) = a + b t`` (t in steps) by weighted least squares
-and flags the landmark when the velocity is significant, ``b^T Cov(b)^-1 b > chi2_2(velocity_probability)``.
-Tentative landmarks not seen for ``max_unseen_steps`` steps are dropped (:meth:`LandmarkMap.prune`).
+Persistence (dynamic-object filtering) is the tracks' rule (see :mod:`slam2d.association.tracks`): a new landmark
+starts *tentative* and is *confirmed* once it has been sighted ``min_sightings`` times while its sightings agree
+with one fixed point (chi-square consistency) and show no significant constant velocity; a landmark failing either
+test is *dynamic* and never confirmed. A forklift re-observed every step fails the velocity test. Tentative
+landmarks not seen for ``max_unseen_steps`` steps are dropped (:meth:`LandmarkMap.prune`); the map has no notion
+of "in view", so it never prunes by misses.
 
 :class:`PersistentLandmarkMapper` is the simplest user of the map: given poses (true or estimated) and
 range-bearing observations, it fuses each sighting into the nearest landmark within a Mahalanobis gate
@@ -27,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import linear_sum_assignment
-from scipy.stats import chi2
 
+from slam2d.association.tracks import LandmarkTracks, TrackConfig
 from slam2d.geometry.gaussian import chi2_gate
 from slam2d.models.sensors import SensorConfig, range_bearing_inverse, range_bearing_inverse_jacobians
 
@@ -67,31 +64,46 @@ class PersistenceConfig:
 
 
 class LandmarkMap:
-    """Stacked landmark arrays. Shapes (N landmarks): ids (N,), means (N,2), covs (N,2,2), counts (N,), first_step
-    (N,), last_step (N,), confirmed (N,) bool, dynamic (N,) bool; info_sum (N,2,2) = sum R_i^-1, info_z (N,2) =
-    sum R_i^-1 z_i, z_info_z (N,) = sum z_i^T R_i^-1 z_i, info_t (N,2,2) = sum R_i^-1 t_i, info_tt (N,2,2) =
-    sum R_i^-1 t_i^2, info_tz (N,2) = sum R_i^-1 t_i z_i are running sums over the sightings (t_i = step)."""
+    """Stacked landmark arrays: ids (N,), means (N,2), covs (N,2,2), and their :class:`LandmarkTracks` (one map,
+    slots in the same order) holding the sighting counts, first/last step, the ``dynamic`` flag and the running sums
+    of the persistence rule. ``counts``, ``first_step``, ``last_step``, ``confirmed`` and ``dynamic`` (N,) are views of
+    the tracks."""
 
     def __init__(self, config: PersistenceConfig | None = None) -> None:
         self.config = config or PersistenceConfig()
+        cfg = self.config
+        # the map never prunes by misses in view: stale tentative landmarks go by max_unseen_steps (prune)
+        self.tracks = LandmarkTracks(TrackConfig(confirm_after=cfg.min_sightings, tentative_max_misses=0,
+                                                 confirmed_max_misses=0, dynamic_test=True,
+                                                 consistency_probability=cfg.consistency_probability,
+                                                 velocity_probability=cfg.velocity_probability))
         self.ids = np.zeros(0, dtype=np.int64)
         self.means = np.zeros((0, 2))
         self.covs = np.zeros((0, 2, 2))
-        self.counts = np.zeros(0, dtype=np.int64)
-        self.first_step = np.zeros(0, dtype=np.int64)
-        self.last_step = np.zeros(0, dtype=np.int64)
-        self.confirmed = np.zeros(0, dtype=bool)
-        self.dynamic = np.zeros(0, dtype=bool)
-        self.info_sum = np.zeros((0, 2, 2))
-        self.info_z = np.zeros((0, 2))
-        self.z_info_z = np.zeros(0)
-        self.info_t = np.zeros((0, 2, 2))
-        self.info_tt = np.zeros((0, 2, 2))
-        self.info_tz = np.zeros((0, 2))
         self._next_id = 0
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
+
+    @property
+    def counts(self) -> IntArray:
+        return self.tracks.hits[0]
+
+    @property
+    def first_step(self) -> IntArray:
+        return self.tracks.first_step[0]
+
+    @property
+    def last_step(self) -> IntArray:
+        return self.tracks.last_step[0]
+
+    @property
+    def confirmed(self) -> NDArray[np.bool_]:
+        return self.tracks.confirmed[0]
+
+    @property
+    def dynamic(self) -> NDArray[np.bool_]:
+        return self.tracks.dynamic[0]
 
     def add(self, means: ArrayLike, covs: ArrayLike, step: int) -> IntArray:
         """Start tentative landmarks (one sighting each); returns their new ids. Shapes: (K,2),(K,2,2) -> (K,)."""
@@ -103,19 +115,7 @@ class LandmarkMap:
         self.ids = np.concatenate([self.ids, new])
         self.means = np.vstack([self.means, m])
         self.covs = np.concatenate([self.covs, c])
-        self.counts = np.concatenate([self.counts, np.ones(k, dtype=np.int64)])
-        self.first_step = np.concatenate([self.first_step, np.full(k, step, dtype=np.int64)])
-        self.last_step = np.concatenate([self.last_step, np.full(k, step, dtype=np.int64)])
-        self.confirmed = np.concatenate([self.confirmed, np.zeros(k, dtype=bool)])
-        self.dynamic = np.concatenate([self.dynamic, np.zeros(k, dtype=bool)])
-        ri = np.linalg.inv(c)
-        self.info_sum = np.concatenate([self.info_sum, ri])
-        self.info_z = np.vstack([self.info_z, np.einsum("kij,kj->ki", ri, m)])
-        self.z_info_z = np.concatenate([self.z_info_z, np.einsum("ki,kij,kj->k", m, ri, m)])
-        self.info_t = np.concatenate([self.info_t, ri * step])
-        self.info_tt = np.concatenate([self.info_tt, ri * step**2])
-        self.info_tz = np.vstack([self.info_tz, np.einsum("kij,kj->ki", ri, m) * step])
-        self._apply_rule()
+        self.tracks.append(k, step, m, c)
         return new
 
     def fuse(self, index: ArrayLike, points: ArrayLike, covs: ArrayLike, step: int) -> None:
@@ -134,65 +134,26 @@ class LandmarkMap:
         self.means[idx] = np.einsum("kij,kj->ki", p_new, np.einsum("kij,kj->ki", pi, self.means[idx])
                                     + np.einsum("kij,kj->ki", ri, z))
         self.covs[idx] = 0.5 * (p_new + p_new.transpose(0, 2, 1))
-        self.counts[idx] += 1
-        self.last_step[idx] = step
-        self.info_sum[idx] += ri
-        self.info_z[idx] += np.einsum("kij,kj->ki", ri, z)
-        self.z_info_z[idx] += np.einsum("ki,kij,kj->k", z, ri, z)
-        self.info_t[idx] += ri * step
-        self.info_tt[idx] += ri * step**2
-        self.info_tz[idx] += np.einsum("kij,kj->ki", ri, z) * step
-        self._apply_rule()
+        self.tracks.sight(idx, step, z, r)
 
     def consistency_chi2(self) -> Array:
         """Weighted residual sum of squares of each landmark's sightings about their weighted mean. Shape (N,).
 
         ``sum z^T W z - (sum W z)^T (sum W)^-1 (sum W z)``: 0 for one sighting, ~chi2(2(n-1)) for a static point.
         """
-        if len(self) == 0:
-            return np.zeros(0)
-        b = np.linalg.solve(self.info_sum, self.info_z[:, :, None])[:, :, 0]
-        return np.maximum(self.z_info_z - np.einsum("ki,ki->k", self.info_z, b), 0.0)
+        return self.tracks.consistency_chi2()
 
     def velocity_chi2(self) -> Array:
         """``b^T Cov(b)^-1 b`` for the weighted constant-velocity fit of each landmark's sightings (0 when fewer than
         2 distinct steps). Shape (N,)."""
-        n = len(self)
-        if n == 0:
-            return np.zeros(0)
-        # shift time to the landmark's first sighting: same fit, far better conditioned than absolute step numbers
-        ok = self.last_step > self.first_step
-        out = np.zeros(n)
-        if not ok.any():
-            return out
-        t0 = self.first_step[ok].astype(np.float64)[:, None, None]
-        w, wt = self.info_sum[ok], self.info_t[ok] - t0 * self.info_sum[ok]
-        wtt = self.info_tt[ok] - 2 * t0 * self.info_t[ok] + t0**2 * self.info_sum[ok]
-        gz, gtz = self.info_z[ok], self.info_tz[ok] - t0[:, :, 0] * self.info_z[ok]
-        h = np.block([[w, wt], [wt, wtt]])
-        g = np.concatenate([gz, gtz], axis=1)
-        sol = np.linalg.solve(h, g[:, :, None])[:, :, 0]
-        b = sol[:, 2:]
-        cov_b = np.linalg.inv(h)[:, 2:, 2:]
-        out[ok] = np.einsum("ki,kij,kj->k", b, np.linalg.inv(cov_b), b)
-        return out
-
-    def _apply_rule(self) -> None:
-        cfg = self.config
-        dof = 2 * np.maximum(self.counts - 1, 1)
-        limit = chi2.ppf(cfg.consistency_probability, dof)
-        moving = (self.counts > 1) & (self.consistency_chi2() > limit)
-        moving |= (self.counts > 2) & (self.velocity_chi2() > chi2.ppf(cfg.velocity_probability, 2))
-        self.dynamic |= ~self.confirmed & moving
-        self.confirmed |= ~self.dynamic & (self.counts >= cfg.min_sightings)
+        return self.tracks.velocity_chi2()
 
     def prune(self, step: int) -> int:
         """Drop tentative and dynamic landmarks unseen for ``max_unseen_steps``; returns how many were dropped."""
         stale = ~self.confirmed & (step - self.last_step >= self.config.max_unseen_steps)
         keep = ~stale
-        for name in ("ids", "means", "covs", "counts", "first_step", "last_step", "confirmed", "dynamic", "info_sum",
-                     "info_z", "z_info_z", "info_t", "info_tt", "info_tz"):
-            setattr(self, name, getattr(self, name)[keep])
+        self.ids, self.means, self.covs = self.ids[keep], self.means[keep], self.covs[keep]
+        self.tracks.keep(keep)
         return int(stale.sum())
 
     def estimate_view(self) -> tuple[Array, Array, IntArray]:
