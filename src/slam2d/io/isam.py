@@ -29,6 +29,7 @@ from slam2d.io._text import (
     read_lines,
     tokenize,
 )
+from slam2d.io.atomic import atomic_write
 
 SPEC = {"ODOMETRY": (2, 9), "EDGE2": (2, 9), "LANDMARK": (2, 5)}
 
@@ -101,5 +102,5 @@ def write_isam(path: str | os.PathLike[str], graph: FactorGraph, values: Values 
     for f in range(b.size):
         nums = [*b.z[f], *b.sqrt_info[f][iu2]]
         out.append(f"LANDMARK {int(b.keys[0, f])} {int(b.keys[1, f])} " + " ".join(fmt(x) for x in nums))
-    with open(path, "w", encoding="utf-8") as fh:
+    with atomic_write(path) as fh:
         fh.write("\n".join(out) + ("\n" if out else ""))

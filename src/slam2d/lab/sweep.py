@@ -51,6 +51,7 @@ STORE_FILE = "results.jsonl"
 QUARANTINE_FILE = "quarantine.jsonl"
 PLAN_FILE = "plan.json"
 LOCK_FILE = ".lock"
+MAX_SWEEP_FILE_BYTES = 16 * 2**20
 
 TOP_KEYS = {
     "name": "a label for the sweep (string)",
@@ -267,11 +268,20 @@ def _validate(spec: RunSpec, origin: Mapping[str, str], source: str) -> None:
 def load_sweep(path: str | Path) -> SweepPlan:
     """Read and validate a sweep TOML file (see the module docstring for the schema)."""
     p = Path(path)
+    if p.exists() and not p.is_file():
+        raise ValueError(f"{p}: not a sweep file (a directory or a special file)")
+    with p.open("rb") as f:
+        raw = f.read(MAX_SWEEP_FILE_BYTES + 1)
+    if len(raw) > MAX_SWEEP_FILE_BYTES:
+        raise ValueError(f"{p}: larger than {MAX_SWEEP_FILE_BYTES // 2**20} MB; not a sweep file")
     try:
-        with p.open("rb") as f:
-            data = tomllib.load(f)
+        data = tomllib.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{p}: not valid TOML (not UTF-8 text at byte {e.start})") from None
     except tomllib.TOMLDecodeError as e:
         raise ValueError(f"{p}: not valid TOML: {e}") from None
+    except RecursionError:
+        raise ValueError(f"{p}: not valid TOML (nested too deeply)") from None
     return parse_sweep(data, str(p))
 
 

@@ -20,6 +20,7 @@ from scipy.optimize import nnls
 
 from slam2d.geometry import se2
 from slam2d.geometry.angles import angle_diff, wrap_angle
+from slam2d.io import bounded
 from slam2d.log import Log
 from slam2d.models.motion import odometry_to_rtr
 
@@ -65,15 +66,15 @@ def read_table(path: str | Path, columns: Sequence[str], *, delimiter: str | Non
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8", errors="strict")
+        text_lines = bounded.read_lines(path, DatasetFormatError, errors="strict")
     except FileNotFoundError:
         raise DatasetFormatError(f"{path}: no such file") from None
-    except UnicodeDecodeError as e:
-        raise DatasetFormatError(f"{path}: not a text file ({e.reason} at byte {e.start})") from None
+    except OSError as e:
+        raise DatasetFormatError(f"{path}: cannot read ({e.strerror or e})") from None
     ncol = len(columns)
     rows: list[list[str]] = []
     lines: list[int] = []
-    for no, raw in enumerate(text.splitlines(), start=1):
+    for no, raw in enumerate(text_lines, start=1):
         s = raw.strip()
         if not s or s.startswith(comment):
             continue
