@@ -6,6 +6,8 @@ import argparse
 import sys
 from typing import Any
 
+import numpy as np
+
 from slam2d.cli.common import add_force_argument, check_number, check_outputs, write_json
 from slam2d.graph import FactorGraph, OptimizerConfig, Values, optimize
 from slam2d.graph.initialization import chordal_poses, initial_points
@@ -64,6 +66,14 @@ def cmd(args: argparse.Namespace) -> int:
                           lambda_initial_factor=args.lambda_initial)
     values = _chordal(gf.graph, gf.values, gf.fixed_pose_keys) if args.init == "chordal" else gf.values
     out, s = optimize(gf.graph, values, cfg, fixed_pose_keys=gf.fixed_pose_keys)
+    # divergence is an error, never a result: a non-finite state or a final chi2 above the initial one
+    if not (np.isfinite(s.chi2_final) and np.all(np.isfinite(out.poses)) and np.all(np.isfinite(out.points))):
+        raise FloatingPointError(f"{args.input}: the {args.solver} solver diverged to a non-finite state after "
+                                 f"{s.iterations} iterations ({s.termination})")
+    if s.cost_final > s.cost_initial * (1 + 1e-9) + 1e-12:  # the (robust) objective, not chi2
+        worst = int(np.argmax(s.cost_history)) if s.cost_history else s.iterations
+        raise ValueError(f"{args.input}: the {args.solver} solver diverged: the cost rose from {s.cost_initial:.6g} "
+                         f"to {s.cost_final:.6g} (largest at iteration {worst}); try --solver lm or --init file")
     record = {
         "input": str(args.input), "format": gf.format, "initial_guess": "chordal" if args.init == "chordal"
         else gf.initial_guess, "solver": args.solver, "robust": args.robust,

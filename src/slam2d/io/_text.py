@@ -32,6 +32,8 @@ Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 _INT64_MAX = 2**63 - 1
+#: largest information entry a reader accepts: squares and sums of the normal equations stay finite in float64
+MAX_INFORMATION = 1e100
 
 
 class GraphFormatError(ValueError):
@@ -166,6 +168,11 @@ def check_pd(name: str, tag: str, om: Array, lines: IntArray) -> None:
     """GraphFormatError naming the first line whose (N, m, m) information matrix is not positive definite."""
     if om.shape[0] == 0:
         return
+    big = ~(np.abs(om).reshape(om.shape[0], -1).max(axis=1) <= MAX_INFORMATION)  # NaN too
+    if np.any(big):
+        i = int(np.flatnonzero(big)[0])
+        raise GraphFormatError(f"{name}:{int(lines[i])}: {tag} information entry above {MAX_INFORMATION:g} "
+                               "(its products overflow in the solver)")
     ev = np.linalg.eigvalsh(om)
     bad = ~(ev[:, 0] > 0)
     if np.any(bad):
