@@ -12,6 +12,7 @@ import argparse
 import importlib
 import os
 import sys
+import warnings
 from collections.abc import Sequence
 
 #: one module per sub-command; each defines ``register(subparsers)`` and sets ``func`` on its parser
@@ -88,6 +89,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     debug = _debug_requested(args_in)
     args_in = [a for a in args_in if a != "--debug"]
     command = "?"
+    if not debug:
+        # numeric warnings are noise next to the one-line error: divergence is checked and reported as an error
+        warnings.simplefilter("ignore", RuntimeWarning)
     try:
         parser = build_parser()
         args = parser.parse_args(args_in)

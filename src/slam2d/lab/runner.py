@@ -30,6 +30,14 @@ LOOP_TRUE_DISTANCE_M = 16.0
 LOOP_TRUE_ERROR_M = 1.0
 
 
+class DivergenceError(FloatingPointError):
+    """An estimator produced a non-finite pose; the message names the step."""
+
+
+def name_of(estimator: object) -> str:
+    return type(estimator).__name__
+
+
 @dataclass(frozen=True)
 class RunResult:
     """What one run produced. Shapes: poses (T+1,3) online estimates; trajectory (T+1,3) final (smoothed) one;
@@ -97,6 +105,9 @@ def run(
         snap = estimator.estimate()
         step_s[i - 1] = time.perf_counter() - t0
         poses[i] = snap.pose
+        if not np.all(np.isfinite(poses[i])):  # a diverged filter is an error, never a result
+            raise DivergenceError(f"{name_of(estimator)} diverged at step {i}: pose {poses[i].tolist()} "
+                                  f"(odometry {step.odometry.tolist()})")
         covs.append(snap.pose_cov)
         if keep_snapshots:
             snaps.append(snap)
@@ -113,6 +124,9 @@ def run(
     loops.extend(snap.new_loops)
     traj = snap.trajectory
     trajectory = np.asarray(traj, dtype=np.float64) if traj is not None and len(traj) == t + 1 else poses
+    if not np.all(np.isfinite(trajectory)):
+        bad = int(np.flatnonzero(~np.all(np.isfinite(trajectory), axis=1))[0])
+        raise DivergenceError(f"{name_of(estimator)} diverged: the final trajectory is not finite from step {bad}")
     pose_covs = None if any(c is None for c in covs) else np.asarray(covs)
     result = RunResult(poses, trajectory, pose_covs, step_s, snap, snaps if keep_snapshots else None,
                        loops=tuple(loops), closes_loops=isinstance(estimator, SupportsLoopClosure))
