@@ -98,6 +98,7 @@ CASES: list[tuple[str, str, str]] = [
     # lidar
     ("lidar", "lidar --dataset {d}/missing.clf", "missing.clf"),
     ("lidar", "lidar --dataset {dir}", "directory"),
+    ("lidar", "lidar --dataset /dev/zero", "regular file"),
     ("lidar", "lidar --dataset {file} --resolution 0", "--resolution"),
     ("lidar", "lidar --dataset {file} --resolution nan", "--resolution"),
     ("lidar", "lidar --dataset {file} --resolution 1e-300", "--resolution"),
@@ -211,3 +212,22 @@ def test_atomic_write_to_a_device_writes_in_place():
         fh.write("x")
     assert Path("/dev/null").exists() and not Path("/dev/null").is_file()
     assert np.isfinite(1.0)
+
+
+def test_optimize_dev_zero_stays_small(tmp_path):
+    """``slam2d optimize /dev/zero`` ends with one error line and a small peak RSS (the reader stops at the first
+    over-long line instead of reading forever). The elapsed time is measured in the report, not asserted."""
+    import subprocess
+    import sys
+
+    src = str(Path(__file__).resolve().parents[2] / "src")
+    # a small wrapper reports the peak RSS of the command alone (this process's other children do not count)
+    wrapper = ("import resource, subprocess, sys; r = subprocess.run(sys.argv[1:], capture_output=True, text=True); "
+               "sys.stderr.write(r.stderr); print(r.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+    res = subprocess.run([sys.executable, "-c", wrapper, sys.executable, "-m", "slam2d", "optimize", "/dev/zero",
+                          "--out", str(tmp_path / "o.g2o")], capture_output=True, text=True, timeout=300,
+                         env={**os.environ, "PYTHONPATH": src, "OPENBLAS_NUM_THREADS": "1"})
+    code, peak_kb = (int(v) for v in res.stdout.split())
+    assert code == 2 and "/dev/zero" in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+    assert peak_kb / 1024 < 300, peak_kb
+    assert not (tmp_path / "o.g2o").exists()

@@ -80,8 +80,9 @@ def cmd(args: argparse.Namespace) -> int:
 
     # everything that can be checked is checked before the (minutes of) SLAM
     path = resolve_dataset(args.dataset)
-    if path.is_dir():
-        raise IsADirectoryError(21, "is a directory, not a CARMEN log", str(path))
+    if not path.is_file():  # a directory, /dev/zero, a FIFO: never read line by line without end
+        raise IsADirectoryError(21, "is a directory, not a CARMEN log", str(path)) if path.is_dir() else \
+            ValueError(f"{path}: not a regular file (a CARMEN log is a .clf or .clf.bz2 file)")
     check_number("--resolution", args.resolution, low=0.01, high=100.0)
     name = Path(path).name.split(".")[0]
     out = Path(args.out or f"{name}_map.png")
