@@ -222,8 +222,10 @@ def test_optimize_dev_zero_stays_small(tmp_path):
 
     src = str(Path(__file__).resolve().parents[2] / "src")
     # a small wrapper reports the peak RSS of the command alone (this process's other children do not count)
-    wrapper = ("import resource, subprocess, sys; r = subprocess.run(sys.argv[1:], capture_output=True, text=True); "
-               "sys.stderr.write(r.stderr); print(r.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+    wrapper = ("import resource, subprocess, sys; "
+               "r = subprocess.run(sys.argv[1:], capture_output=True, text=True); "
+               "sys.stderr.write(r.stderr); "
+               "print(r.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
     res = subprocess.run([sys.executable, "-c", wrapper, sys.executable, "-m", "slam2d", "optimize", "/dev/zero",
                           "--out", str(tmp_path / "o.g2o")], capture_output=True, text=True, timeout=300,
                          env={**os.environ, "PYTHONPATH": src, "OPENBLAS_NUM_THREADS": "1"})
