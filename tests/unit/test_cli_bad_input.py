@@ -77,6 +77,8 @@ CASES: list[tuple[str, str, str]] = [
     ("run", "run --set steps=3 --set estimator.gps_std_m=1e300 --estimator ekf", "gps_std_m"),
     ("run", "run --dataset mrclam --dataset-path {dir}", "Barcodes.dat"),
     ("run", "run --seed -1", "--seed"),
+    ("run", "run --estimator fastslam --set steps=3 --set estimator.particles=1000000000", "SLAM2D_MAX_MEMORY_MB"),
+    ("run", "run --set steps=3 --set sensor.descriptor_dim=100000000", "descriptor_dim"),
     ("run", "run --dataset mrclam --max-steps 0", "--max-steps"),
     ("run", "run --dataset mrclam --max-time nan", "--max-time"),
     # datasets

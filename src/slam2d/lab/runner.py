@@ -18,7 +18,7 @@ from slam2d.eval.trajectory import ate, rpe
 from slam2d.geometry import se2
 from slam2d.lab.registry import get_spec, make_config
 from slam2d.log import Log
-from slam2d.sim.scenarios import ScenarioConfig
+from slam2d.sim.scenarios import MEMORY_ENV, ScenarioConfig, memory_limit_mb
 from slam2d.sim.simulator import simulate, spawn_streams
 
 Array = NDArray[np.float64]
@@ -164,6 +164,22 @@ def score(result: RunResult, log: Log) -> dict[str, Any]:
     return m
 
 
+def _check_particle_memory(name: str, cfg: object, log: Log) -> None:
+    """A particle filter holds a map per particle: refuse (before allocating) a particles x landmarks product over
+    the memory limit of :func:`slam2d.sim.scenarios.check_memory` (``SLAM2D_MAX_MEMORY_MB``)."""
+    particles = to_dict(cfg).get("particles")
+    if not isinstance(particles, int):
+        return
+    known = log.true_landmarks.shape[0] if log.true_landmarks is not None else 0
+    seen = int(np.unique(log.obs_id[log.obs_id >= 0]).size) if log.obs_id.size else 0
+    landmarks = max(known, seen, min(log.obs_step.size, 1000), 1)
+    need_mb = particles * (landmarks * 8.0 * 8 + 64) * 3 / 2**20  # mean + covariance per landmark, a few copies
+    limit_mb = memory_limit_mb()
+    if need_mb > limit_mb:
+        raise ValueError(f"{name}: particles={particles} with ~{landmarks} landmarks would need about "
+                         f"{need_mb:.3g} MB, over the limit of {limit_mb:g} MB; set {MEMORY_ENV} to allow it")
+
+
 def run_named(
     estimator: str,
     scenario: str | None = "room",
@@ -192,6 +208,7 @@ def run_named(
     else:
         (est_over,) = split_overrides(rest, spec.config_cls)
     est_cfg = make_config(estimator, {**est_over, **est_only}, log.metadata)
+    _check_particle_memory(estimator, est_cfg, log)
     est = spec.factory(est_cfg)
     rng = spawn_streams(seed)["estimator"]
     result = run(est, log, rng=rng, keep_snapshots=keep_snapshots, progress=progress)

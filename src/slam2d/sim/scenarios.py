@@ -108,14 +108,19 @@ def estimate_memory_bytes(cfg: ScenarioConfig) -> tuple[float, float]:
     return total, step
 
 
+def memory_limit_mb() -> float:
+    """``$SLAM2D_MAX_MEMORY_MB`` or the default (4096 MB)."""
+    raw = os.environ.get(MEMORY_ENV, "")
+    try:
+        return float(raw) if raw else DEFAULT_MAX_MEMORY_MB
+    except ValueError:
+        raise ValueError(f"{MEMORY_ENV} must be a number of MB (got {raw!r})") from None
+
+
 def check_memory(cfg: ScenarioConfig) -> None:
     """ValueError (before anything is allocated) when the run would need more than ``$SLAM2D_MAX_MEMORY_MB``
     (default 4096 MB) by :func:`estimate_memory_bytes`; the message names the fields that dominate."""
-    raw = os.environ.get(MEMORY_ENV, "")
-    try:
-        limit_mb = float(raw) if raw else DEFAULT_MAX_MEMORY_MB
-    except ValueError:
-        raise ValueError(f"{MEMORY_ENV} must be a number of MB (got {raw!r})") from None
+    limit_mb = memory_limit_mb()
     total, step = estimate_memory_bytes(cfg)
     need_mb = max(total, step) / 2**20
     if not need_mb <= limit_mb:  # also catches inf / nan
