@@ -60,7 +60,7 @@ def describe(e: BaseException) -> str | None:
             where = f"{where} -> {e.filename2}"
         return f"{where}: {why}" if where else why
     if isinstance(e, OverflowError | FloatingPointError | ZeroDivisionError):
-        return f"numeric overflow or invalid value ({type(e).__name__}: {e})"
+        return f"numeric failure ({type(e).__name__}: {e})"
     if isinstance(e, RecursionError):
         return f"input nested too deeply ({e})"
     if isinstance(e, MemoryError):
