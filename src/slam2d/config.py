@@ -16,20 +16,26 @@ from typing import Any, TypeVar
 C = TypeVar("C")
 
 
+#: magnitudes outside [TINY, HUGE] make squares, inverses and products overflow or vanish in float64; no physical
+#: quantity in a 2D SLAM config comes near them, so validation refuses them with the field's name
+TINY = 1e-100
+HUGE = 1e100
+
+
 def check_positive(obj: object, *names: str) -> None:
-    """Raise ValueError unless each named field is a finite number > 0."""
+    """Raise ValueError unless each named field is a finite number in [1e-100, 1e100] (squares stay finite)."""
     for n in names:
         v = getattr(obj, n)
-        if not (v > 0 and v < float("inf")):
-            raise ValueError(f"{type(obj).__name__}.{n} must be > 0 (got {v!r})")
+        if not (v >= TINY and v <= HUGE):
+            raise ValueError(f"{type(obj).__name__}.{n} must be a number in [{TINY:g}, {HUGE:g}] (got {v!r})")
 
 
 def check_nonnegative(obj: object, *names: str) -> None:
-    """Raise ValueError unless each named field is a finite number >= 0."""
+    """Raise ValueError unless each named field is 0 or a finite number up to 1e100."""
     for n in names:
         v = getattr(obj, n)
-        if not (v >= 0 and v < float("inf")):
-            raise ValueError(f"{type(obj).__name__}.{n} must be >= 0 (got {v!r})")
+        if not (v >= 0 and v <= HUGE):
+            raise ValueError(f"{type(obj).__name__}.{n} must be a number in [0, {HUGE:g}] (got {v!r})")
 
 
 def check_probability(obj: object, *names: str, open_low: bool = False) -> None:

@@ -12,14 +12,18 @@ method reads it; the association metrics compare against it.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import io
 import json
+import os
+import tempfile
 import zipfile
+import zlib
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -285,54 +289,90 @@ class Log:
 
     # ------------------------------------------------------------------ persistence
     def save(self, path: str | Path) -> Path:
-        """Write the log as an ``.npz`` archive holding the arrays plus ``metadata.json``. Returns the path."""
-        path = Path(path)
+        """Write the log as an ``.npz`` archive holding the arrays plus ``metadata.json``. Written to a temporary
+        file beside ``path`` and renamed, so a failed save never leaves a truncated log. Returns the path."""
+        target = Path(path)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                self.write_npz(fh)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.chmod(tmp, 0o644)
+            os.replace(tmp, target)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            raise
+        return target
+
+    def write_npz(self, fh: IO[bytes]) -> None:
+        """Write the archive into an open binary file (the CLI wraps it in ``slam2d.io.atomic.atomic_write``)."""
         arrays = {n: getattr(self, n) for n in _ARRAY_FIELDS if getattr(self, n) is not None}
         arrays["initial_pose"] = self.initial_pose
         meta = {"format": "slam2d-log", "version": 1, "scan_max_range_m": self.scan_max_range_m,
                 "metadata": dict(self.metadata)}
-        with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+        with zipfile.ZipFile(fh, "w", compression=zipfile.ZIP_DEFLATED) as zf:
             for name, arr in arrays.items():
                 buf = io.BytesIO()
                 np.save(buf, np.asarray(arr), allow_pickle=False)
                 zf.writestr(name + ".npy", buf.getvalue())
             zf.writestr("metadata.json", json.dumps(meta, sort_keys=True))
-        return path
 
     @classmethod
     def load(cls, path: str | Path) -> Log:
-        """Read a log written by :meth:`save`; raises :class:`LogFormatError` naming the file and the problem."""
+        """Read a log written by :meth:`save`; raises only :class:`LogFormatError` naming the file and the problem
+        (a missing, special or oversized file, a corrupt archive, wrong array types or shapes, non-finite values)."""
         path = Path(path)
+        if not path.exists():
+            raise LogFormatError(f"{path}: no such file")
+        if not path.is_file():
+            raise LogFormatError(f"{path}: not a slam2d log (a directory or a special file)")
+        limit = _max_log_bytes()
         try:
             zf = zipfile.ZipFile(path)
-        except FileNotFoundError:
-            raise LogFormatError(f"{path}: no such file") from None
-        except (zipfile.BadZipFile, OSError) as e:
+        except (zipfile.BadZipFile, OSError, ValueError, EOFError, OverflowError) as e:
             raise LogFormatError(f"{path}: not a slam2d log (corrupt or truncated archive: {e})") from None
         try:
             with zf:
-                names = set(zf.namelist())
-                if "metadata.json" not in names:
+                infos = {i.filename: i for i in zf.infolist()}
+                if sum(i.file_size for i in infos.values()) > limit:
+                    raise LogFormatError(f"{path}: archive expands to more than {limit / 2**20:g} MB "
+                                         f"(set {MAX_LOG_ENV} to read it)")
+                if "metadata.json" not in infos:
                     raise LogFormatError(f"{path}: not a slam2d log (metadata.json missing)")
                 meta = json.loads(zf.read("metadata.json"))
-                if meta.get("format") != "slam2d-log":
-                    raise LogFormatError(f"{path}: not a slam2d log (format tag {meta.get('format')!r})")
+                if not isinstance(meta, dict) or meta.get("format") != "slam2d-log":
+                    tag = meta.get("format") if isinstance(meta, dict) else type(meta).__name__
+                    raise LogFormatError(f"{path}: not a slam2d log (format tag {tag!r})")
                 arrays: dict[str, Any] = {}
                 for n in (*_ARRAY_FIELDS, "initial_pose"):
-                    if n + ".npy" in names:
+                    if n + ".npy" in infos:
                         arrays[n] = np.load(io.BytesIO(zf.read(n + ".npy")), allow_pickle=False)
         except LogFormatError:
             raise
-        except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError) as e:
+        except RecursionError:
+            raise LogFormatError(f"{path}: corrupt slam2d log (metadata.json nested too deeply)") from None
+        except (zipfile.BadZipFile, OSError, ValueError, EOFError, KeyError, TypeError, OverflowError,
+                NotImplementedError, RuntimeError, zlib.error, MemoryError) as e:
             raise LogFormatError(f"{path}: corrupt slam2d log ({type(e).__name__}: {e})") from None
         missing = [n for n in ("stamps_s", "odometry", "obs_step", "obs_range_m", "obs_bearing_rad", "obs_id")
                    if n not in arrays]
         if missing:
             raise LogFormatError(f"{path}: corrupt slam2d log (missing arrays {missing})")
+        problem = _check_arrays(arrays)
+        if problem:
+            raise LogFormatError(f"{path}: corrupt slam2d log ({problem})")
+        smr = meta.get("scan_max_range_m", 0.0)
+        if isinstance(smr, bool) or not isinstance(smr, int | float) or not (0 <= smr < float("inf")):
+            raise LogFormatError(f"{path}: corrupt slam2d log (scan_max_range_m must be a finite number >= 0, "
+                                 f"got {smr!r})")
+        metadata = meta.get("metadata", {})
+        if not isinstance(metadata, dict):
+            raise LogFormatError(f"{path}: corrupt slam2d log (metadata must be a JSON object)")
         try:
-            return cls(**arrays, scan_max_range_m=float(meta.get("scan_max_range_m", 0.0)),
-                       metadata=meta.get("metadata", {}))
-        except ValueError as e:
+            return cls(**arrays, scan_max_range_m=float(smr), metadata=metadata)
+        except (ValueError, TypeError, IndexError, OverflowError) as e:
             raise LogFormatError(f"{path}: inconsistent slam2d log ({e})") from None
 
     def equals(self, other: Log) -> bool:
@@ -344,3 +384,62 @@ class Log:
             if a is not None and not (a.shape == b.shape and a.dtype == b.dtype and np.array_equal(a, b)):
                 return False
         return json.dumps(dict(self.metadata), sort_keys=True) == json.dumps(dict(other.metadata), sort_keys=True)
+
+
+MAX_LOG_ENV = "SLAM2D_MAX_FILE_MB"
+
+
+def _max_log_bytes() -> int:
+    """The size cap of a log archive (uncompressed): ``SLAM2D_MAX_FILE_MB`` (default 2048 MB), as for text inputs."""
+    raw = os.environ.get(MAX_LOG_ENV, "")
+    try:
+        mb = float(raw) if raw else 2048.0
+    except ValueError:
+        mb = 2048.0
+    return int(mb * 2**20)
+
+
+#: kind ("f" float, "i" integer) and number of dimensions of every stored array; None = any float finite check off
+_ARRAY_KINDS: dict[str, tuple[str, int, bool]] = {
+    "stamps_s": ("f", 1, True), "odometry": ("f", 2, True), "obs_step": ("i", 1, True),
+    "obs_range_m": ("f", 1, False), "obs_bearing_rad": ("f", 1, False), "obs_id": ("i", 1, True),
+    "obs_descriptor": ("f", 2, False), "true_poses": ("f", 2, True), "true_landmarks": ("f", 2, True),
+    "true_landmark_ids": ("i", 1, True), "walls": ("f", 2, True), "gps_step": ("i", 1, True),
+    "gps_xy": ("f", 2, True), "scan_step": ("i", 1, True), "scan_ranges_m": ("f", 2, False),
+    "scan_angles_rad": ("f", 1, True), "dynamic_xy": ("f", 3, False), "initial_pose": ("f", 1, True),
+    "marker_step": ("i", 1, True), "marker_xy_m": ("f", 2, True), "marker_id": ("i", 1, True),
+    "true_markers": ("f", 2, True),
+}
+
+
+def _check_arrays(arrays: dict[str, Any]) -> str | None:
+    """What is wrong with the loaded arrays' types, shapes and values (None when they are usable); converts them
+    in place to float64 / int64."""
+    for n, a in arrays.items():
+        kind, ndim, finite = _ARRAY_KINDS[n]
+        if not isinstance(a, np.ndarray) or a.dtype.kind not in ("iu" if kind == "i" else "fiu"):
+            return f"{n} must be {'an integer' if kind == 'i' else 'a numeric'} array, got {getattr(a, 'dtype', a)}"
+        if a.ndim != ndim:
+            return f"{n} must have {ndim} dimension(s), got shape {a.shape}"
+        arrays[n] = a = a.astype(np.int64 if kind == "i" else np.float64)
+        if finite and kind == "f" and not np.all(np.isfinite(a)):
+            return f"{n} has non-finite values"
+    t = arrays["odometry"].shape[0]
+    checks = [
+        ("initial_pose", lambda a: a.shape == (3,)),
+        ("obs_descriptor", lambda a: a.shape[0] == arrays["obs_step"].shape[0]),
+        ("true_landmarks", lambda a: a.shape[1] == 2),
+        ("walls", lambda a: a.shape[1] == 4),
+        ("gps_step", lambda a: a.size == 0 or (a.min() >= 0 and a.max() <= t)),
+        ("gps_xy", lambda a: a.shape == (arrays.get("gps_step", np.zeros(0)).shape[0], 2)),
+        ("scan_step", lambda a: a.size == 0 or (a.min() >= 0 and a.max() <= t)),
+        ("scan_ranges_m", lambda a: a.shape == (arrays.get("scan_step", np.zeros(0)).shape[0],
+                                               arrays.get("scan_angles_rad", np.zeros(0)).shape[0])),
+        ("dynamic_xy", lambda a: a.shape[0] == t + 1 and a.shape[2] == 2),
+    ]
+    for n, ok in checks:
+        if n in arrays and not ok(arrays[n]):
+            return f"{n} has an inconsistent shape {arrays[n].shape} or values out of range"
+    if ("gps_step" in arrays) != ("gps_xy" in arrays) or ("scan_step" in arrays) != ("scan_ranges_m" in arrays):
+        return "gps_step/gps_xy or scan_step/scan_ranges_m stored without their partner"
+    return None

@@ -29,9 +29,7 @@ RULES = {
 }
 
 #: files other helpers are splitting right now (issue 15); remove each entry once the file is under the limit
-PENDING_SPLIT = {
-    "lab/sweep.py",
-}
+PENDING_SPLIT: set[str] = set()
 #: files that still carry the lab's old "not available yet" notices for optional back ends (all back ends exist
 #: now; the web/cli owners remove these paths); remove each entry once the text is gone
 PENDING_PLACEHOLDERS: set[str] = set()

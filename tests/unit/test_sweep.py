@@ -56,7 +56,7 @@ def test_expansion_is_the_product_of_estimators_scenarios_grid_and_seeds(tmp_pat
     ("estimators = ['dead-reckoning']\n[grid]\nsteps = [5, 0]\n", r"grid\.steps = 0 .*steps must be >= 1"),
     ("estimators = ['dead-reckoning']\n[set]\nnot_a_field = 1\n", r"set\.not_a_field = 1 .*unknown key 'not_a_field'"),
     ("estimators = ['dead-reckoning']\n[[configs]]\nsensor.range_std_m = -1\n",
-     r"configs\[0\]\.sensor\.range_std_m = -1 .*range_std_m must be > 0"),
+     r"configs\[0\]\.sensor\.range_std_m = -1 .*range_std_m must be a number in"),
     ("estimators = ['dead-reckoning']\n[grid]\nsteps = 5\n", r"grid\.steps must be a non-empty list"),
     ("estimators = ['nope']\n", r"'estimators' has unknown name\(s\) \['nope'\]"),
     ("estimators = ['dead-reckoning']\nscenarios = ['moon']\n", r"'scenarios' has unknown name\(s\) \['moon'\]"),

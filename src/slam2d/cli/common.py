@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from slam2d.config import parse_set_args
+from slam2d.io.atomic import check_output, refuse_overwrite_input, write_text_atomic
 
 
 def add_set_argument(p: argparse.ArgumentParser) -> None:
@@ -41,6 +42,35 @@ def print_table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> No
 
 
 def write_json(path: str | Path, record: Mapping[str, Any]) -> None:
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    p.write_text(json.dumps(record, indent=2, sort_keys=True, default=float) + "\n")
+    text = json.dumps(record, indent=2, sort_keys=True, default=float) + "\n"  # serialise before touching the file
+    write_text_atomic(path, text)
+
+
+def add_force_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--force", action="store_true", help="allow an output to overwrite one of the inputs")
+
+
+def check_outputs(args: argparse.Namespace, inputs: Sequence[str | Path | None],
+                  outputs: Sequence[tuple[str, str | Path | None]]) -> None:
+    """Before any long work: every output path is writable, none is a directory, none is an input (unless
+    ``--force``) and no two outputs are the same file. Errors name the option and the path."""
+    for name, o in outputs:
+        if o is not None:
+            check_output(o, name)
+    refuse_overwrite_input(inputs, outputs, force=bool(getattr(args, "force", False)))
+
+
+def check_number(name: str, value: float | int | None, *, low: float | None = None, high: float | None = None,
+                 low_open: bool = False) -> None:
+    """ValueError naming the option unless ``value`` is finite and inside [low, high] ((low, high] if low_open)."""
+    if value is None:
+        return
+    ok = math.isfinite(value)
+    if ok and low is not None:
+        ok = value > low if low_open else value >= low
+    if ok and high is not None:
+        ok = value <= high
+    if not ok:
+        lo = "" if low is None else f"{'>' if low_open else '>='} {low:g}"
+        hi = "" if high is None else f"<= {high:g}"
+        raise ValueError(f"{name} must be a finite number {' and '.join(x for x in (lo, hi) if x)} (got {value!r})")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from slam2d.cli.common import print_table, write_json
+from slam2d.cli.common import check_outputs, print_table, write_json
 from slam2d.io.datasets import DATASETS, data_dir, dataset_status
 
 
@@ -19,6 +19,7 @@ def register(sub: Any) -> None:
 
 
 def cmd(args: argparse.Namespace) -> int:
+    check_outputs(args, [], [("--json", args.json)])
     root, why = data_dir(args.data_dir)
     print(f"data directory: {root}  ({why})")
     rows = []

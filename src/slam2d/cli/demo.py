@@ -6,8 +6,9 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from slam2d.cli.common import print_table, write_json
+from slam2d.cli.common import check_outputs, print_table, write_json
 from slam2d.cli.run import COLUMNS
+from slam2d.io.atomic import atomic_path
 from slam2d.lab.registry import estimator_names
 from slam2d.lab.runner import run_named
 from slam2d.sim.scenarios import SCENARIOS, ScenarioConfig
@@ -25,6 +26,10 @@ def register(sub: Any) -> None:
 
 
 def cmd(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(20, "--out must be a folder", str(out))
+    check_outputs(args, [], [("--out", out / "demo.json")])
     log = simulate(ScenarioConfig(name=args.scenario), args.seed)
     rows, results = [], {}
     for name in estimator_names():
@@ -32,12 +37,13 @@ def cmd(args: argparse.Namespace) -> int:
         rows.append(record)
         results[name] = result
     print_table(rows, COLUMNS)
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "demo.json", {"runs": [{k: v for k, v in r.items() if not k.endswith("_config")}
                                             for r in rows]})
     from slam2d.viz.figures import save_runs_figure
 
-    path = save_runs_figure(log, results, out / "demo.png")
+    with atomic_path(out / "demo.png") as tmp:
+        save_runs_figure(log, results, tmp)
+    path = out / "demo.png"
     print(f"wrote {path} and {out / 'demo.json'}")
     return 0

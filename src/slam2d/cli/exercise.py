@@ -131,8 +131,10 @@ def check(fn: AugmentFn, ref: AugmentFn, random_count: int = 20) -> list[Verdict
 def load_learner(path: str | Path) -> AugmentFn:
     """Import ``augment_state`` from a learner's file; ValueError with a clear message otherwise."""
     p = Path(path)
+    if p.is_dir():
+        raise IsADirectoryError(21, "is a directory, not a Python file", str(p))
     if not p.is_file():
-        raise FileNotFoundError(f"no such file: {p}")
+        raise FileNotFoundError(2, "no such file", str(p))
     spec = importlib.util.spec_from_file_location(f"_slam2d_exercise_{abs(hash(str(p.resolve())))}", p)
     if spec is None or spec.loader is None:
         raise ValueError(f"{p}: not a Python file")
@@ -165,8 +167,8 @@ def register(sub: Any) -> None:
 
 def cmd(args: argparse.Namespace) -> int:
     ref = reference_augment_state()
-    if args.random < 0:
-        raise ValueError(f"--random must be >= 0 (got {args.random})")
+    if not 0 <= args.random <= 100_000:
+        raise ValueError(f"--random must be in 0..100000 (got {args.random})")
     fn = load_learner(args.file)
     verdicts = check(fn, ref, args.random)
     for v in verdicts:

@@ -15,7 +15,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from slam2d.cli.common import add_set_argument, overrides_from, print_table, write_json
+from slam2d.cli.common import add_set_argument, check_outputs, overrides_from, print_table, write_json
 from slam2d.config import check_positive, to_dict, with_overrides
 
 
@@ -218,6 +218,9 @@ def register(sub: Any) -> None:
 def cmd(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         raise ValueError(f"--seeds must be >= 1 (got {args.seeds})")
+    if args.seeds > 100_000:
+        raise ValueError(f"--seeds must be <= 100000 (got {args.seeds})")
+    check_outputs(args, [], [("--json", args.json_out)])
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     out = EXPERIMENTS[args.name](seeds, overrides_from(args))
     if out.title:

@@ -16,6 +16,9 @@ def register(sub: Any) -> None:
                                    "browser from numbers the library computes. Binds 127.0.0.1 unless told otherwise.")
     p.add_argument("--host", default="127.0.0.1", help="interface to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
+    p.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN",
+                   help="also accept pages served from ORIGIN, e.g. https://lab.example.org (repeatable); "
+                        "by default only loopback origins may use the lab")
     p.set_defaults(func=cmd)
 
 
@@ -47,10 +50,10 @@ def cmd(args: argparse.Namespace) -> int:
         return 2
     if args.host not in ("127.0.0.1", "localhost", "::1"):
         print(f"slam2d lab: warning: binding {args.host} exposes the lab to other machines", file=sys.stderr)
-    shown = f"[{args.host}]" if ":" in args.host else args.host
-    print(f"slam2d lab: serving on http://{shown}:{args.port}/  (Ctrl+C to stop)", flush=True)
     try:
-        serve(args.host, args.port)
+        # "serving on" only once the port is bound; a busy port is one error line
+        serve(args.host, args.port, allow_origins=frozenset(args.allow_origin),
+              announce=lambda url: print(f"slam2d lab: serving on {url}  (Ctrl+C to stop)", flush=True))
     except KeyboardInterrupt:
         pass
     # the server has stopped and holds nothing to save: skip the interpreter's slow teardown of ~1,000 modules

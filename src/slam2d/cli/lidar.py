@@ -7,7 +7,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-from slam2d.cli.common import overrides_from, print_table, write_json
+from slam2d.cli.common import (
+    add_force_argument,
+    check_number,
+    check_outputs,
+    overrides_from,
+    print_table,
+    write_json,
+)
+from slam2d.io.atomic import atomic_path
 
 DATASETS = {"intel-laser": "intel", "intel": "intel", "aces": "aces", "fr079": "fr079", "mit-csail": "mit-csail"}
 
@@ -34,6 +42,7 @@ def register(sub: Any) -> None:
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a LidarSlamConfig field (repeatable), e.g. --set keyframe_distance_m=0.05 "
                         "--set icp.trim_fraction=0.9")
+    add_force_argument(p)
     p.set_defaults(func=cmd)
 
 
@@ -69,15 +78,27 @@ def cmd(args: argparse.Namespace) -> int:
     )
     from slam2d.viz.maps import save_occupancy_png
 
+    # everything that can be checked is checked before the (minutes of) SLAM
     path = resolve_dataset(args.dataset)
+    if not path.is_file():  # a directory, /dev/zero, a FIFO: never read line by line without end
+        raise IsADirectoryError(21, "is a directory, not a CARMEN log", str(path)) if path.is_dir() else \
+            ValueError(f"{path}: not a regular file (a CARMEN log is a .clf or .clf.bz2 file)")
+    check_number("--resolution", args.resolution, low=0.01, high=100.0)
+    name = Path(path).name.split(".")[0]
+    out = Path(args.out or f"{name}_map.png")
+    rel_path = Path(args.relations) if args.relations else Path(str(path).replace(".clf.bz2", ".relations")
+                                                                     .replace(".clf", ".relations"))
+    check_outputs(args, [path, rel_path if rel_path.exists() else None], [("--out", out), ("--json", args.json)])
+    cfg = with_overrides(LidarSlamConfig(loop_closure=not args.no_loops, refine_scans=args.refine_scans,
+                                         track_scans=not args.no_track_scans),
+                         overrides_from(args))
+    use_rel = rel_path.exists() and rel_path != path
+    relations = read_relations(rel_path) if use_rel else None
     t0 = time.perf_counter()
     log = read_carmen(path)
     print(log.summary())
     if log.num_scans < 2:
         raise ValueError(f"{path}: fewer than 2 usable scans")
-    cfg = with_overrides(LidarSlamConfig(loop_closure=not args.no_loops, refine_scans=args.refine_scans,
-                                         track_scans=not args.no_track_scans),
-                         overrides_from(args))
     t1 = time.perf_counter()
     res = run_lidar_slam(log.poses, log.ranges_m, log.angles_rad, log.max_range_m, cfg)
     t2 = time.perf_counter()
@@ -89,9 +110,6 @@ def cmd(args: argparse.Namespace) -> int:
     grid = OccupancyGrid.around(np.vstack([sample, res.poses[:, :2]]), 1.0,
                                 OccupancyConfig(resolution_m=args.resolution, free_range_cap_m=0.0))
     grid.integrate(res.keyframe_poses, log.ranges_m[res.keyframes], log.angles_rad, log.max_range_m)
-    name = Path(path).name.split(".")[0]
-    out = Path(args.out or f"{name}_map.png")
-    save_occupancy_png(grid, out, res.poses if args.path else None)
     thick = wall_thickness_cells(grid)
     t3 = time.perf_counter()
     record: dict[str, Any] = {
@@ -102,15 +120,16 @@ def cmd(args: argparse.Namespace) -> int:
         "wall_cells_p90": round(float(np.percentile(thick, 90)), 2) if len(thick) else float("nan"),
         "read_s": round(t1 - t0, 1), "slam_s": round(t2 - t1, 1), "map_s": round(t3 - t2, 1),
     }
-    rel_path = Path(args.relations) if args.relations else Path(str(path).replace(".clf.bz2", ".relations")
-                                                                     .replace(".clf", ".relations"))
-    if rel_path.exists() and rel_path != path:
-        rs, rel = read_relations(rel_path)
+    if relations is not None:
+        rs, rel = relations
         for label, poses in (("odometry", log.poses), ("slam", res.poses)):
             s = relation_errors(log.stamps_s, poses, rs, rel).summary()
             record.update({f"{label}_{k}": v for k, v in s.items() if k not in ("relations", "missing")})
         record["relations"] = len(rs)
+    # both outputs or neither: the map is renamed into place only after the JSON is written
+    with atomic_path(out) as tmp_png:
+        save_occupancy_png(grid, tmp_png, res.poses if args.path else None)
+        if args.json:
+            write_json(args.json, {**record, "config": dataclasses.asdict(cfg)})
     print_table([record], list(record))
-    if args.json:
-        write_json(args.json, {**record, "config": dataclasses.asdict(cfg)})
     return 0

@@ -1,14 +1,19 @@
-"""Entry point: builds one sub-command per module in ``COMMANDS`` and turns library errors into clean messages."""
+"""Entry point: builds one sub-command per module in ``COMMANDS``; the one error boundary of the CLI.
+
+Every error a user can cause (a path that is missing, a directory, read-only or full; a config value out of range;
+a malformed file; a numeric failure) ends as ONE line on stderr, ``slam2d CMD: error: ...`` naming the path or
+field, and exit status 2. Anything else is a bug: one line saying so and exit status 3. ``--debug`` (anywhere on
+the command line) or ``SLAM2D_DEBUG=1`` re-raises with the full stack instead.
+"""
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+import warnings
 from collections.abc import Sequence
-
-from slam2d.graph.linear import SolverError
-from slam2d.log import LogFormatError
 
 #: one module per sub-command; each defines ``register(subparsers)`` and sets ``func`` on its parser
 COMMANDS = [
@@ -26,29 +31,91 @@ COMMANDS = [
     "slam2d.cli.map",
 ]
 
+EXIT_USER = 2
+EXIT_BUG = 3
+EXIT_INTERRUPTED = 130
+
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="slam2d", description="Classical 2D SLAM: simulate, estimate, evaluate.")
+    parser = argparse.ArgumentParser(prog="slam2d", description="Classical 2D SLAM: simulate, estimate, evaluate.",
+                                     epilog="--debug (anywhere) shows the full stack of an error.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         importlib.import_module(name).register(sub)
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if not getattr(args, "func", None):
-        parser.print_help()
-        return 2
+def _one_line(text: str, limit: int = 600) -> str:
+    s = " ".join(text.split())
+    return s if len(s) <= limit else s[: limit - 3] + "..."
+
+
+def describe(e: BaseException) -> str | None:
+    """The one-line message for an error the user can cause; None for anything else (a bug)."""
+    from slam2d.estimator import EstimatorStateError
+
+    if isinstance(e, OSError):
+        where = e.filename if e.filename is not None else ""
+        why = e.strerror or str(e) or type(e).__name__
+        if e.filename2 is not None:
+            where = f"{where} -> {e.filename2}"
+        return f"{where}: {why}" if where else why
+    if isinstance(e, OverflowError | FloatingPointError | ZeroDivisionError):
+        return f"numeric failure ({type(e).__name__}: {e})"
+    if isinstance(e, RecursionError):
+        return f"input nested too deeply ({e})"
+    if isinstance(e, MemoryError):
+        return "out of memory (reduce the problem size)"
     try:
+        from numpy.linalg import LinAlgError
+    except ImportError:  # pragma: no cover
+        LinAlgError = ()  # type: ignore[assignment,misc]
+    if isinstance(e, LinAlgError):
+        return f"linear algebra failed ({e})"
+    if isinstance(e, EstimatorStateError):
+        return None
+    # config (ValueError / TypeError naming the field) and every format error (LogFormatError, GraphFormatError,
+    # DatasetFormatError, CARMEN errors, SolverError: all ValueError subclasses)
+    if isinstance(e, ValueError | TypeError | KeyError | LookupError):
+        return str(e) if not isinstance(e, KeyError) else f"missing key {e}"
+    return None
+
+
+def _debug_requested(argv: list[str]) -> bool:
+    return "--debug" in argv or os.environ.get("SLAM2D_DEBUG", "") not in ("", "0")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args_in = list(sys.argv[1:] if argv is None else argv)
+    debug = _debug_requested(args_in)
+    args_in = [a for a in args_in if a != "--debug"]
+    command = "?"
+    if not debug:
+        # numeric warnings are noise next to the one-line error: divergence is checked and reported as an error
+        warnings.simplefilter("ignore", RuntimeWarning)
+    try:
+        parser = build_parser()
+        args = parser.parse_args(args_in)
+        command = str(args.command)
+        if not getattr(args, "func", None):
+            parser.print_help()
+            return EXIT_USER
         return int(args.func(args) or 0)
-    except (ValueError, LogFormatError, FileNotFoundError, SolverError) as e:
-        print(f"slam2d {args.command}: error: {e}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
-        print(f"slam2d {args.command}: interrupted", file=sys.stderr)
-        return 130
+        print(f"slam2d {command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except SystemExit:
+        raise
+    except Exception as e:
+        if debug:
+            raise
+        msg = describe(e)
+        if msg is None:
+            print(f"slam2d {command}: internal error: {_one_line(f'{type(e).__name__}: {e}')} "
+                  "(a bug; --debug shows the stack)", file=sys.stderr)
+            return EXIT_BUG
+        print(f"slam2d {command}: error: {_one_line(msg)}", file=sys.stderr)
+        return EXIT_USER
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -6,10 +6,13 @@ import argparse
 import sys
 from typing import Any
 
-from slam2d.cli.common import write_json
+import numpy as np
+
+from slam2d.cli.common import add_force_argument, check_number, check_outputs, write_json
 from slam2d.graph import FactorGraph, OptimizerConfig, Values, optimize
 from slam2d.graph.initialization import chordal_poses, initial_points
 from slam2d.io import FORMATS, read_graph, write_g2o
+from slam2d.io.atomic import atomic_path
 
 
 def register(sub: Any) -> None:
@@ -30,6 +33,7 @@ def register(sub: Any) -> None:
                    help="LM initial damping (relative to diag H; default %(default)g; Victoria Park needs ~1)")
     p.add_argument("--linear-solver", default="auto", help="auto, qdldl, cholmod, splu or dense")
     p.add_argument("--json", default=None, metavar="OUT", help="write a JSON summary")
+    add_force_argument(p)
     p.set_defaults(func=cmd)
 
 
@@ -41,6 +45,7 @@ def _kernel(spec: str | None) -> tuple[str | None, float]:
         value = float(param) if param else 1.0
     except ValueError:
         raise ValueError(f"--robust: parameter {param!r} is not a number") from None
+    check_number("--robust parameter", value, low=1e-12, high=1e12)
     return name.lower(), value
 
 
@@ -51,14 +56,24 @@ def _chordal(graph: FactorGraph, values: Values, fixed: Any) -> Values:
 
 
 def cmd(args: argparse.Namespace) -> int:
-    gf = read_graph(args.input, args.format)
+    check_number("--max-iterations", args.max_iterations, low=0, high=1e6)
+    check_number("--lambda-initial", args.lambda_initial, low=0, low_open=True, high=1e12)
     kernel, param = _kernel(args.robust)
+    check_outputs(args, [args.input], [("--out", args.out), ("--json", args.json)])
+    gf = read_graph(args.input, args.format)
     cfg = OptimizerConfig(method=args.solver, max_iterations=args.max_iterations, robust_kernel=kernel,
                           robust_param=param, linear_solver=args.linear_solver,
                           lambda_initial_factor=args.lambda_initial)
     values = _chordal(gf.graph, gf.values, gf.fixed_pose_keys) if args.init == "chordal" else gf.values
     out, s = optimize(gf.graph, values, cfg, fixed_pose_keys=gf.fixed_pose_keys)
-    write_g2o(args.out, gf.graph, out, fixed_pose_keys=gf.fixed_pose_keys if gf.fixed_pose_keys.size else None)
+    # divergence is an error, never a result: a non-finite state or a final chi2 above the initial one
+    if not (np.isfinite(s.chi2_final) and np.all(np.isfinite(out.poses)) and np.all(np.isfinite(out.points))):
+        raise FloatingPointError(f"{args.input}: the {args.solver} solver diverged to a non-finite state after "
+                                 f"{s.iterations} iterations ({s.termination})")
+    if s.cost_final > s.cost_initial * (1 + 1e-9) + 1e-12:  # the (robust) objective, not chi2
+        worst = int(np.argmax(s.cost_history)) if s.cost_history else s.iterations
+        raise ValueError(f"{args.input}: the {args.solver} solver diverged: the cost rose from {s.cost_initial:.6g} "
+                         f"to {s.cost_final:.6g} (largest at iteration {worst}); try --solver lm or --init file")
     record = {
         "input": str(args.input), "format": gf.format, "initial_guess": "chordal" if args.init == "chordal"
         else gf.initial_guess, "solver": args.solver, "robust": args.robust,
@@ -74,6 +89,9 @@ def cmd(args: argparse.Namespace) -> int:
           f"{s.solve_s:.3f} s")
     if s.num_components > 1:
         print(f"note: {s.num_components} disconnected components; held poses {s.gauge_pose_keys}", file=sys.stderr)
-    if args.json:
-        write_json(args.json, record)
+    # both outputs or neither: the graph goes to a temporary file that is renamed only after the JSON is written
+    with atomic_path(args.out) as tmp:
+        write_g2o(tmp, gf.graph, out, fixed_pose_keys=gf.fixed_pose_keys if gf.fixed_pose_keys.size else None)
+        if args.json:
+            write_json(args.json, record)
     return 0

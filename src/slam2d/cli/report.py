@@ -3,7 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import os
+import tempfile
+from pathlib import Path
 from typing import Any
+
+from slam2d.io.atomic import check_output
 
 
 def register(sub: Any) -> None:
@@ -21,6 +26,21 @@ def cmd(args: argparse.Namespace) -> int:
         from slam2d.viz.report import build_report
     except ImportError as e:  # matplotlib is the optional 'viz' extra
         raise ValueError(f"the report needs matplotlib: pip install 'slam2d[viz]' ({e})") from None
-    page = build_report(args.directory, args.out)
-    print(f"wrote {page}")
+    d = Path(args.directory)
+    if not d.is_dir():
+        raise (NotADirectoryError if d.exists() else FileNotFoundError)(20 if d.exists() else 2,
+                                                                        "not a result directory", str(d))
+    out_dir = Path(args.out) if args.out else d / "report"
+    if out_dir.exists() and not out_dir.is_dir():
+        raise NotADirectoryError(20, "--out must be a folder", str(out_dir))
+    check_output(out_dir / "index.html", "--out")
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    # build beside the target, then move the files in (figures first, the page last): a failed report leaves the
+    # previous one as it was
+    with tempfile.TemporaryDirectory(prefix=f".{out_dir.name}.", dir=out_dir.parent) as tmp:
+        page = build_report(d, tmp)
+        out_dir.mkdir(exist_ok=True)
+        for f in sorted(Path(tmp).iterdir(), key=lambda f: f.name == page.name):
+            os.replace(f, out_dir / f.name)
+    print(f"wrote {out_dir / page.name}")
     return 0

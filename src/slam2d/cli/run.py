@@ -6,7 +6,15 @@ import argparse
 from typing import Any
 
 from slam2d.association import METHODS
-from slam2d.cli.common import add_set_argument, overrides_from, print_table, write_json
+from slam2d.cli.common import (
+    add_force_argument,
+    add_set_argument,
+    check_number,
+    check_outputs,
+    overrides_from,
+    print_table,
+    write_json,
+)
 from slam2d.config import parse_set_args
 from slam2d.eval.gps import gps_ate
 from slam2d.io.datasets import DATASETS, load_dataset
@@ -44,6 +52,7 @@ def register(sub: Any) -> None:
     p.add_argument("--no-loop-closure", action="store_true",
                    help="switch the estimator's loop closure off (estimators that have one, e.g. graph)")
     add_set_argument(p)
+    add_force_argument(p)
     p.set_defaults(func=cmd)
 
 
@@ -63,6 +72,10 @@ def _literal(text: str) -> Any:
 
 
 def cmd(args: argparse.Namespace) -> int:
+    check_number("--seed", args.seed, low=0, high=2**63 - 1)
+    check_number("--max-steps", args.max_steps, low=1)
+    check_number("--max-time", args.max_time, low=0, low_open=True)
+    check_outputs(args, [args.log, args.dataset_path], [("--json", args.json)])
     log = Log.load(args.log) if args.log else None
     if args.dataset:
         opts = {k: _literal(v) for k, v in parse_set_args(args.dataset_opt).items()}

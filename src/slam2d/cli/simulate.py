@@ -5,8 +5,9 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from slam2d.cli.common import add_set_argument, overrides_from
+from slam2d.cli.common import add_set_argument, check_number, check_outputs, overrides_from
 from slam2d.config import with_overrides
+from slam2d.io.atomic import atomic_write
 from slam2d.sim.scenarios import SCENARIOS, ScenarioConfig
 from slam2d.sim.simulator import simulate
 
@@ -22,9 +23,12 @@ def register(sub: Any) -> None:
 
 
 def cmd(args: argparse.Namespace) -> int:
+    check_number("--seed", args.seed, low=0, high=2**63 - 1)
+    check_outputs(args, [], [("--out", args.out)])
     cfg = with_overrides(ScenarioConfig(name=args.scenario), overrides_from(args))
     log = simulate(cfg, args.seed)
-    path = log.save(args.out)
-    print(f"wrote {path}: {log.num_steps} steps, {len(log.obs_step)} observations, "
+    with atomic_write(args.out, "wb") as fh:
+        log.write_npz(fh)
+    print(f"wrote {args.out}: {log.num_steps} steps, {len(log.obs_step)} observations, "
           f"{0 if log.true_landmarks is None else len(log.true_landmarks)} landmarks")
     return 0

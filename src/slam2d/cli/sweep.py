@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
-from slam2d.lab.sweep import load_sweep, make_executor, run_sweep
+from slam2d.io.atomic import check_output
+from slam2d.lab.sweep import STORE_FILE, load_sweep, make_executor, run_sweep
 
 
 def register(sub: Any) -> None:
@@ -31,6 +33,11 @@ def register(sub: Any) -> None:
 
 
 def cmd(args: argparse.Namespace) -> int:
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise NotADirectoryError(20, "is a file, not a result directory", f"--out {out}")
+    if not (out / STORE_FILE).is_dir():  # a directory there is quarantined by the store
+        check_output(out / STORE_FILE, "--out")
     plan = load_sweep(args.config)  # validates every expanded configuration before anything runs
     if args.dry_run:
         for s in plan.specs:

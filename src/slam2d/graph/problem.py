@@ -143,6 +143,9 @@ class Analysis:
         # Free variables are numbered in state order: v has offset voff[v] and dimension vdim[v].
         Fp, Fl = self.free_pose.size, self.free_point.size
         V = Fp + Fl
+        if V == 0:
+            raise GraphError("nothing to optimise: every pose is held fixed (FIX / fixed_pose_keys) and there are "
+                             "no landmarks")
         pose_var = np.full(P, -1, np.int64)
         pose_var[self.free_pose] = np.arange(Fp)
         point_var = np.full(L, -1, np.int64)

@@ -6,6 +6,8 @@ Error policy (all readers):
   ``file:line:`` and names the offending token: wrong field count, a token that is not a number / integer id,
   NaN or infinite numbers, an information matrix that is not positive definite, a duplicate vertex, an edge to a
   vertex that was never declared (when the file declares vertices), a self-loop edge;
+* a file in which no line has a known tag (another format, binary data) raises ``GraphFormatError``;
+  lines longer than ``SLAM2D_MAX_LINE_CHARS`` or files larger than ``SLAM2D_MAX_FILE_MB`` too (``io.bounded``);
 * unknown tags are skipped and counted (``GraphFile.skipped``); with ``on_unknown="warn"`` (default) one
   :class:`GraphFormatWarning` summarises them, ``"ignore"`` stays silent, ``"error"`` raises at the first one;
 * files without vertex lines get their initial guess from the measurements (spanning tree of the relative-pose
@@ -24,11 +26,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam2d.graph.graph import FactorGraph, Values
+from slam2d.io import bounded
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 _INT64_MAX = 2**63 - 1
+#: largest information entry a reader accepts: squares and sums of the normal equations stay finite in float64
+MAX_INFORMATION = 1e100
 
 
 class GraphFormatError(ValueError):
@@ -63,8 +68,8 @@ class Rows:
 
 
 def read_lines(path: str | os.PathLike[str]) -> list[str]:
-    with open(path, encoding="utf-8", errors="replace") as fh:
-        return fh.read().splitlines()
+    """The file's lines, read in chunks with the size and line-length caps of :mod:`slam2d.io.bounded`."""
+    return bounded.read_lines(path, GraphFormatError)
 
 
 def tokenize(path: str | os.PathLike[str], lines: Iterable[str], spec: dict[str, tuple[int, int]],
@@ -107,6 +112,10 @@ def tokenize(path: str | os.PathLike[str], lines: Iterable[str], spec: dict[str,
         ints = [(_int(name, no, t)) for no, toks in items for t in toks]
         lines_ = [no for no, toks in items for _ in toks]
         out[tag] = Rows(np.asarray(ints, np.int64), np.zeros((len(ints), 0)), np.asarray(lines_, np.int64))
+    if skipped and not any(len(r[0]) for r in buckets.values()) and not any(var_rows.values()):
+        seen = ", ".join(sorted(skipped)[:6])
+        raise GraphFormatError(f"{name}: no line is in this format (expected tags {', '.join(spec)}; found {seen}); "
+                               "wrong --format?")
     if skipped and on_unknown == "warn":
         desc = ", ".join(f"{t} x{c}" for t, c in sorted(skipped.items()))
         warnings.warn(f"{name}: skipped lines with unknown tags: {desc}", GraphFormatWarning, stacklevel=3)
@@ -159,6 +168,11 @@ def check_pd(name: str, tag: str, om: Array, lines: IntArray) -> None:
     """GraphFormatError naming the first line whose (N, m, m) information matrix is not positive definite."""
     if om.shape[0] == 0:
         return
+    big = ~(np.abs(om).reshape(om.shape[0], -1).max(axis=1) <= MAX_INFORMATION)  # NaN too
+    if np.any(big):
+        i = int(np.flatnonzero(big)[0])
+        raise GraphFormatError(f"{name}:{int(lines[i])}: {tag} information entry above {MAX_INFORMATION:g} "
+                               "(its products overflow in the solver)")
     ev = np.linalg.eigvalsh(om)
     bad = ~(ev[:, 0] > 0)
     if np.any(bad):

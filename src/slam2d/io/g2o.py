@@ -32,6 +32,7 @@ from slam2d.io._text import (
     upper3_to_matrix,
     upper6_to_matrix,
 )
+from slam2d.io.atomic import atomic_write
 
 SPEC = {
     "VERTEX_SE2": (1, 3),
@@ -135,5 +136,5 @@ def write_g2o(path: str | os.PathLike[str], graph: FactorGraph, values: Values, 
     for f in range(b.size):
         nums = " ".join(fmt(v) for v in np.concatenate([b.z[f], om[f][iu3]]))
         out.append(f"EDGE_SE2_PRIOR {int(b.keys[0, f])} {nums}")
-    with open(path, "w", encoding="utf-8") as fh:
+    with atomic_write(path) as fh:
         fh.write("\n".join(out) + ("\n" if out else ""))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 
+from slam2d.io import bounded
 from slam2d.io._text import GraphFile, GraphFormatError
 from slam2d.io.g2o import read_g2o
 from slam2d.io.isam import read_isam
@@ -20,13 +21,12 @@ def detect_format(path: str | os.PathLike[str]) -> str:
     if ext in _EXT:
         return _EXT[ext]
     tags = set()
-    with open(path, encoding="utf-8", errors="replace") as fh:
-        for i, line in enumerate(fh):
-            tok = line.split("#", 1)[0].split()
-            if tok:
-                tags.add(tok[0])
-            if i > 2000:
-                break
+    for i, line in enumerate(bounded.iter_lines(path, GraphFormatError)):
+        tok = line.split("#", 1)[0].split()
+        if tok:
+            tags.add(tok[0][:40])
+        if i > 2000:
+            break
     if tags & {"VERTEX_SE2", "EDGE_SE2", "VERTEX_XY", "EDGE_SE2_XY"}:
         return "g2o"
     if "VERTEX2" in tags:

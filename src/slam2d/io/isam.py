@@ -29,6 +29,7 @@ from slam2d.io._text import (
     read_lines,
     tokenize,
 )
+from slam2d.io.atomic import atomic_write
 
 SPEC = {"ODOMETRY": (2, 9), "EDGE2": (2, 9), "LANDMARK": (2, 5)}
 
@@ -59,13 +60,15 @@ def read_isam(path: str | os.PathLike[str], *, on_unknown: str = "warn") -> Grap
         k = int(np.flatnonzero(loop)[0])
         raise GraphFormatError(f"{name}:{int(lines[k])}: odometry connects pose {int(ints[k, 0])} to itself")
     S = _sqrt6(floats[:, 3:])
-    om_i = np.swapaxes(S, 1, 2) @ S
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflow is reported by check_pd with file:line
+        om_i = np.swapaxes(S, 1, 2) @ S
     check_pd(name, "ODOMETRY", om_i, lines)
     T = measurement_frame_rotation(floats[:, 2])
     om = T @ om_i @ np.swapaxes(T, 1, 2)
     om = 0.5 * (om + np.swapaxes(om, 1, 2))
     SL = _sqrt3(lm.floats[:, 2:])
-    om_l = np.swapaxes(SL, 1, 2) @ SL
+    with np.errstate(over="ignore", invalid="ignore"):
+        om_l = np.swapaxes(SL, 1, 2) @ SL
     check_pd(name, "LANDMARK", om_l, lm.lines)
     g = FactorGraph()
     if ints.shape[0]:
@@ -101,5 +104,5 @@ def write_isam(path: str | os.PathLike[str], graph: FactorGraph, values: Values 
     for f in range(b.size):
         nums = [*b.z[f], *b.sqrt_info[f][iu2]]
         out.append(f"LANDMARK {int(b.keys[0, f])} {int(b.keys[1, f])} " + " ".join(fmt(x) for x in nums))
-    with open(path, "w", encoding="utf-8") as fh:
+    with atomic_write(path) as fh:
         fh.write("\n".join(out) + ("\n" if out else ""))

@@ -26,6 +26,7 @@ from slam2d.io._text import (
     read_lines,
     tokenize,
 )
+from slam2d.io.atomic import atomic_write
 
 SPEC = {"VERTEX2": (1, 3), "EDGE2": (2, 9)}
 
@@ -77,5 +78,5 @@ def write_toro(path: str | os.PathLike[str], graph: FactorGraph, values: Values)
         o = om[f]
         nums = [*b.z[f], o[0, 0], o[0, 1], o[1, 1], o[2, 2], o[0, 2], o[1, 2]]
         out.append(f"EDGE2 {int(b.keys[0, f])} {int(b.keys[1, f])} " + " ".join(fmt(x) for x in nums))
-    with open(path, "w", encoding="utf-8") as fh:
+    with atomic_write(path) as fh:
         fh.write("\n".join(out) + ("\n" if out else ""))

@@ -13,6 +13,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from slam2d.geometry.angles import wrap_angle
+from slam2d.io import bounded
+from slam2d.io.atomic import atomic_write
 
 Array = NDArray[np.float64]
 
@@ -46,8 +48,7 @@ def write_tum(path: str | Path, stamps_s: ArrayLike, poses: ArrayLike) -> Path:
     """Write a planar trajectory as a TUM file (full float precision). Shapes: (N,),(N,3)."""
     rows = poses_to_tum(stamps_s, poses)
     p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    with p.open("w") as f:
+    with atomic_write(p) as f:
         f.write("# timestamp tx ty tz qx qy qz qw\n")
         np.savetxt(f, rows, fmt="%.17g")
     return p
@@ -57,7 +58,7 @@ def read_tum(path: str | Path) -> tuple[Array, Array]:
     """Read a planar TUM file written by :func:`write_tum` (or any planar one). Returns stamps (N,), poses (N,3)."""
     p = Path(path)
     rows: list[list[float]] = []
-    for lineno, line in enumerate(p.read_text().splitlines(), start=1):
+    for lineno, line in enumerate(bounded.iter_lines(p, ValueError), start=1):
         s = line.strip()
         if not s or s.startswith("#"):
             continue

@@ -18,7 +18,7 @@ from slam2d.eval.trajectory import ate, rpe
 from slam2d.geometry import se2
 from slam2d.lab.registry import association_method, get_spec, make_config
 from slam2d.log import Log
-from slam2d.sim.scenarios import ScenarioConfig
+from slam2d.sim.scenarios import MEMORY_ENV, ScenarioConfig, memory_limit_mb
 from slam2d.sim.simulator import simulate, spawn_streams
 
 Array = NDArray[np.float64]
@@ -28,6 +28,14 @@ Array = NDArray[np.float64]
 LOOP_TRUE_DISTANCE_M = 16.0
 #: ... or when its relative-pose measurement is off the true relative pose by more than this
 LOOP_TRUE_ERROR_M = 1.0
+
+
+class DivergenceError(FloatingPointError):
+    """An estimator produced a non-finite pose; the message names the step."""
+
+
+def name_of(estimator: object) -> str:
+    return type(estimator).__name__
 
 
 @dataclass(frozen=True)
@@ -97,6 +105,9 @@ def run(
         snap = estimator.estimate()
         step_s[i - 1] = time.perf_counter() - t0
         poses[i] = snap.pose
+        if not np.all(np.isfinite(poses[i])):  # a diverged filter is an error, never a result
+            raise DivergenceError(f"{name_of(estimator)} diverged at step {i}: pose {poses[i].tolist()} "
+                                  f"(odometry {step.odometry.tolist()})")
         covs.append(snap.pose_cov)
         if keep_snapshots:
             snaps.append(snap)
@@ -113,6 +124,9 @@ def run(
     loops.extend(snap.new_loops)
     traj = snap.trajectory
     trajectory = np.asarray(traj, dtype=np.float64) if traj is not None and len(traj) == t + 1 else poses
+    if not np.all(np.isfinite(trajectory)):
+        bad = int(np.flatnonzero(~np.all(np.isfinite(trajectory), axis=1))[0])
+        raise DivergenceError(f"{name_of(estimator)} diverged: the final trajectory is not finite from step {bad}")
     pose_covs = None if any(c is None for c in covs) else np.asarray(covs)
     result = RunResult(poses, trajectory, pose_covs, step_s, snap, snaps if keep_snapshots else None,
                        loops=tuple(loops), closes_loops=isinstance(estimator, SupportsLoopClosure))
@@ -150,6 +164,22 @@ def score(result: RunResult, log: Log) -> dict[str, Any]:
     return m
 
 
+def _check_particle_memory(name: str, cfg: object, log: Log) -> None:
+    """A particle filter holds a map per particle: refuse (before allocating) a particles x landmarks product over
+    the memory limit of :func:`slam2d.sim.scenarios.check_memory` (``SLAM2D_MAX_MEMORY_MB``)."""
+    particles = to_dict(cfg).get("particles")
+    if not isinstance(particles, int):
+        return
+    known = log.true_landmarks.shape[0] if log.true_landmarks is not None else 0
+    seen = int(np.unique(log.obs_id[log.obs_id >= 0]).size) if log.obs_id.size else 0
+    landmarks = max(known, seen, min(log.obs_step.size, 1000), 1)
+    need_mb = particles * (landmarks * 8.0 * 8 + 64) * 3 / 2**20  # mean + covariance per landmark, a few copies
+    limit_mb = memory_limit_mb()
+    if need_mb > limit_mb:
+        raise ValueError(f"{name}: particles={particles} with ~{landmarks} landmarks would need about "
+                         f"{need_mb:.3g} MB, over the limit of {limit_mb:g} MB; set {MEMORY_ENV} to allow it")
+
+
 def run_named(
     estimator: str,
     scenario: str | None = "room",
@@ -179,6 +209,7 @@ def run_named(
         (est_over,) = split_overrides(rest, spec.config_cls)
     # "auto" association is resolved from the whole log: known ids when any observation carries one
     est_cfg = make_config(estimator, {**est_over, **est_only}, log.metadata, has_ids=bool(np.any(log.obs_id >= 0)))
+    _check_particle_memory(estimator, est_cfg, log)
     est = spec.factory(est_cfg)
     rng = spawn_streams(seed)["estimator"]
     result = run(est, log, rng=rng, keep_snapshots=keep_snapshots, progress=progress)

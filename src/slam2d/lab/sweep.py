@@ -44,13 +44,17 @@ from typing import Any
 import numpy as np
 
 from slam2d.config import split_overrides, to_dict, with_overrides
+from slam2d.io.atomic import write_text_atomic
 from slam2d.lab.registry import estimator_names, get_spec, make_config
+from slam2d.lab.store import QUARANTINE_FILE as QUARANTINE_FILE
+from slam2d.lab.store import STORE_FILE as STORE_FILE
+from slam2d.lab.store import ResultStore as ResultStore
+from slam2d.lab.store import StoreProblem as StoreProblem
 from slam2d.sim.scenarios import ScenarioConfig
 
-STORE_FILE = "results.jsonl"
-QUARANTINE_FILE = "quarantine.jsonl"
 PLAN_FILE = "plan.json"
 LOCK_FILE = ".lock"
+MAX_SWEEP_FILE_BYTES = 16 * 2**20
 
 TOP_KEYS = {
     "name": "a label for the sweep (string)",
@@ -267,11 +271,20 @@ def _validate(spec: RunSpec, origin: Mapping[str, str], source: str) -> None:
 def load_sweep(path: str | Path) -> SweepPlan:
     """Read and validate a sweep TOML file (see the module docstring for the schema)."""
     p = Path(path)
+    if p.exists() and not p.is_file():
+        raise ValueError(f"{p}: not a sweep file (a directory or a special file)")
+    with p.open("rb") as f:
+        raw = f.read(MAX_SWEEP_FILE_BYTES + 1)
+    if len(raw) > MAX_SWEEP_FILE_BYTES:
+        raise ValueError(f"{p}: larger than {MAX_SWEEP_FILE_BYTES // 2**20} MB; not a sweep file")
     try:
-        with p.open("rb") as f:
-            data = tomllib.load(f)
+        data = tomllib.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{p}: not valid TOML (not UTF-8 text at byte {e.start})") from None
     except tomllib.TOMLDecodeError as e:
         raise ValueError(f"{p}: not valid TOML: {e}") from None
+    except RecursionError:
+        raise ValueError(f"{p}: not valid TOML (nested too deeply)") from None
     return parse_sweep(data, str(p))
 
 
@@ -341,128 +354,14 @@ def run_job(spec: Mapping[str, Any], seed: int) -> dict[str, Any]:
     return _clean(rec)  # type: ignore[no-any-return]
 
 
-# ------------------------------------------------------------------------------------------------- the store
-def _checksum(record: Mapping[str, Any]) -> str:
-    body = {k: v for k, v in record.items() if k != "check"}
-    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode()).hexdigest()[:16]
-
-
-@dataclass
-class StoreProblem:
-    """A store line that could not be used: its 1-based line number, why, and its raw text."""
-
-    line: int
-    reason: str
-    text: str
-
-
-class ResultStore:
-    """Append-only JSONL store of run records keyed by (config key, seed) in ``directory``."""
-
-    def __init__(self, directory: str | Path) -> None:
-        self.directory = Path(directory)
-        self.path = self.directory / STORE_FILE
-        self._fd: int | None = None
-
-    # reading ------------------------------------------------------------------------------------------------
-    def scan(self) -> tuple[dict[tuple[str, int], dict[str, Any]], list[StoreProblem]]:
-        """All valid records (first one wins for a repeated (key, seed)) and every unusable line."""
-        records: dict[tuple[str, int], dict[str, Any]] = {}
-        problems: list[StoreProblem] = []
-        if not self.path.exists():
-            return records, problems
-        raw = self.path.read_bytes()
-        lines = raw.split(b"\n")
-        # the text after the last newline is a partial record if non-empty (the writer always ends with "\n")
-        for i, b in enumerate(lines, start=1):
-            if not b.strip():
-                continue
-            text = b.decode("utf-8", errors="replace")
-            if i == len(lines):
-                problems.append(StoreProblem(i, "partial record (no end of line; the writer was interrupted)", text))
-                continue
-            try:
-                rec = json.loads(text)
-            except json.JSONDecodeError as e:
-                problems.append(StoreProblem(i, f"not valid JSON ({e.msg} at column {e.colno})", text))
-                continue
-            if not isinstance(rec, dict) or not isinstance(rec.get("key"), str) or not isinstance(rec.get("seed"), int):
-                problems.append(StoreProblem(i, "not a run record (no 'key' and integer 'seed')", text))
-                continue
-            if rec.get("check") != _checksum(rec):
-                problems.append(StoreProblem(i, "checksum mismatch (the record was altered)", text))
-                continue
-            k = (rec["key"], rec["seed"])
-            if k in records:
-                problems.append(StoreProblem(i, f"duplicate record for config {k[0]} seed {k[1]}", text))
-                continue
-            records[k] = rec
-        return records, problems
-
-    def records(self) -> list[dict[str, Any]]:
-        return list(self.scan()[0].values())
-
-    # repairing ----------------------------------------------------------------------------------------------
-    def quarantine(self, problems: Sequence[StoreProblem]) -> None:
-        """Move the problem lines to ``quarantine.jsonl`` and rewrite the store without them (atomically)."""
-        if not problems:
-            return
-        bad = {p.line for p in problems}
-        lines = self.path.read_bytes().split(b"\n")
-        keep = [b for i, b in enumerate(lines, start=1) if b.strip() and i not in bad]
-        with (self.directory / QUARANTINE_FILE).open("a") as q:
-            for p in problems:
-                q.write(json.dumps({"line": p.line, "reason": p.reason, "text": p.text,
-                                    "moved_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}) + "\n")
-            q.flush()
-            os.fsync(q.fileno())
-        tmp = self.path.with_suffix(".jsonl.tmp")
-        with tmp.open("wb") as f:
-            f.write(b"".join(b + b"\n" for b in keep))
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, self.path)
-        self._fsync_dir()
-
-    # writing ------------------------------------------------------------------------------------------------
-    def open(self) -> None:
-        self.directory.mkdir(parents=True, exist_ok=True)
-        new = not self.path.exists()
-        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
-        if new:
-            self._fsync_dir()
-
-    def append(self, record: Mapping[str, Any]) -> None:
-        """Append one record as one line: a single write on an O_APPEND descriptor, then fsync."""
-        if self._fd is None:
-            self.open()
-        assert self._fd is not None
-        rec = dict(record)
-        rec["check"] = _checksum(rec)
-        data = (json.dumps(rec, sort_keys=True, separators=(",", ":"), allow_nan=False) + "\n").encode()
-        view = memoryview(data)
-        while view:
-            n = os.write(self._fd, view)
-            view = view[n:]
-        os.fsync(self._fd)
-
-    def close(self) -> None:
-        if self._fd is not None:
-            os.close(self._fd)
-            self._fd = None
-
-    def _fsync_dir(self) -> None:
-        fd = os.open(self.directory, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
 # ------------------------------------------------------------------------------------------------- running
-def _ignore_sigint() -> None:
+def _worker_init() -> None:
     # Ctrl-C goes to the whole process group; only the parent should react (cancel, keep what is stored).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # and a worker never outlives the forkserver that forked it (which never outlives the sweep)
+    from slam2d.lab._die_with_parent import die_with_parent
+
+    die_with_parent()
 
 
 @contextlib.contextmanager
@@ -491,9 +390,9 @@ def make_executor(workers: int | None = None, scheduler: str | None = None) -> I
     # forkserver: no fork() of a process that already runs threads (tqdm's monitor); the preload makes the
     # workers start with slam2d imported.
     ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload(["slam2d.lab.sweep"])
+    ctx.set_forkserver_preload(["slam2d.lab._die_with_parent", "slam2d.lab.sweep"])
     ex = cf.ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1, mp_context=ctx,
-                                initializer=_ignore_sigint)
+                                initializer=_worker_init)
     try:
         yield ex
     finally:
@@ -622,6 +521,4 @@ def _bar(total: int, initial: int, enabled: bool | None) -> Any:
 
 
 def _write_plan(path: Path, plan: SweepPlan) -> None:
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(plan.to_dict(), indent=1, sort_keys=True) + "\n")
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(plan.to_dict(), indent=1, sort_keys=True) + "\n")

@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -89,6 +90,7 @@ class ScenarioConfig:
                              f"{sorted(k for k, s in SCENARIOS.items() if s.uses_warehouse)})")
         if spec.check is not None:
             spec.check(self)
+        check_memory(self)
 
     def resolved(self) -> ScenarioConfig:
         """This config with every ``None`` replaced by the scenario's default."""
@@ -99,6 +101,54 @@ class ScenarioConfig:
             preset = {k: v for k, v in spec.lidar.items() if getattr(self.lidar, k) == getattr(base, k)}
             updates["lidar"] = dataclasses.replace(self.lidar, **preset)
         return dataclasses.replace(self, **updates)
+
+
+#: environment variable that raises (or lowers) the memory a simulated run may ask for, in MB
+MEMORY_ENV = "SLAM2D_MAX_MEMORY_MB"
+DEFAULT_MAX_MEMORY_MB = 4096.0
+#: observations of real landmarks one step can hold at most, for the estimate (the sensor's range limits them)
+_VISIBLE_PER_STEP = 500
+
+
+def estimate_memory_bytes(cfg: ScenarioConfig) -> tuple[float, float]:
+    """Rough upper bounds (bytes) of the simulated log and of one step's temporaries: steps, landmarks, clutter,
+    descriptors, lidar beams and moving objects. Pure arithmetic on the config (no allocation)."""
+    spec = SCENARIOS[cfg.name]
+    steps = float(cfg.steps if cfg.steps is not None else spec.defaults.get("steps", 1000))
+    lms = float(cfg.landmarks if cfg.landmarks is not None else spec.defaults.get("landmarks", 1000))
+    movers = float(cfg.moving_objects if cfg.moving_objects is not None else spec.defaults.get("moving_objects", 0))
+    per_obs = 8.0 * (4 + cfg.sensor.descriptor_dim)
+    obs_per_step = min(lms, _VISIBLE_PER_STEP) * cfg.sensor.detection_prob + cfg.sensor.clutter_rate + movers
+    scans = (steps / cfg.lidar.every) * cfg.lidar.beams * 8.0 if cfg.lidar.enabled else 0.0
+    landmark_bytes = lms * (64.0 + 8.0 * cfg.sensor.descriptor_dim)
+    total = steps * (obs_per_step * per_obs + 200.0 + 16.0 * movers) + scans + landmark_bytes
+    # one step: every landmark's range and bearing, the clutter draws and their descriptors, a scan
+    step = 8.0 * (lms * (8 + cfg.sensor.descriptor_dim) + obs_per_step * (4 + cfg.sensor.descriptor_dim)
+                  + cfg.lidar.beams * 8)
+    return total, step
+
+
+def memory_limit_mb() -> float:
+    """``$SLAM2D_MAX_MEMORY_MB`` or the default (4096 MB)."""
+    raw = os.environ.get(MEMORY_ENV, "")
+    try:
+        return float(raw) if raw else DEFAULT_MAX_MEMORY_MB
+    except ValueError:
+        raise ValueError(f"{MEMORY_ENV} must be a number of MB (got {raw!r})") from None
+
+
+def check_memory(cfg: ScenarioConfig) -> None:
+    """ValueError (before anything is allocated) when the run would need more than ``$SLAM2D_MAX_MEMORY_MB``
+    (default 4096 MB) by :func:`estimate_memory_bytes`; the message names the fields that dominate."""
+    limit_mb = memory_limit_mb()
+    total, step = estimate_memory_bytes(cfg)
+    need_mb = max(total, step) / 2**20
+    if not need_mb <= limit_mb:  # also catches inf / nan
+        raise ValueError(
+            f"ScenarioConfig: this run would need about {need_mb:.3g} MB (steps={cfg.steps}, "
+            f"landmarks={cfg.landmarks}, sensor.clutter_rate={cfg.sensor.clutter_rate:g}, "
+            f"sensor.descriptor_dim={cfg.sensor.descriptor_dim}, lidar.beams={cfg.lidar.beams}), over the limit of "
+            f"{limit_mb:g} MB; set {MEMORY_ENV} to allow it")
 
 
 @dataclass(frozen=True)

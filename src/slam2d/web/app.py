@@ -147,9 +147,65 @@ def _nan_safe(obj: Any) -> Any:
     return obj
 
 
-def create_app() -> FastAPI:
-    """The lab application (run with uvicorn, ``ws_per_message_deflate=False``)."""
+LOOPBACK_HOSTS = frozenset({"127.0.0.1", "localhost", "::1", "[::1]"})
+#: a connection that has not completed a request within this time is closed (slow or stuck clients)
+HEADER_TIMEOUT_S = 10.0
+
+
+def _hostname(authority: str) -> str:
+    """``host[:port]`` or ``[v6]:port`` -> the host name, lower case."""
+    a = authority.strip().lower()
+    if a.startswith("["):
+        return a[: a.find("]") + 1] if "]" in a else a
+    return a.rsplit(":", 1)[0] if a.count(":") == 1 else a
+
+
+def origin_allowed(origin: str, allowed: frozenset[str]) -> bool:
+    """A browser Origin is allowed when it is exactly one of ``allowed`` or an http(s) origin on a loopback host."""
+    o = origin.strip().lower().rstrip("/")
+    if o in allowed:
+        return True
+    scheme, sep, rest = o.partition("://")
+    return bool(sep) and scheme in ("http", "https") and "/" not in rest and _hostname(rest) in LOOPBACK_HOSTS
+
+
+class OriginHostGuard:
+    """ASGI middleware: refuse every HTTP request and websocket whose ``Origin`` is not loopback (or explicitly
+    allowed) and, when ``hosts`` is given, whose ``Host`` is not one of them (DNS rebinding). A page on another
+    site can then neither read the lab nor drive its sessions. Requests without ``Origin`` (curl, scripts, the
+    browser's own navigations) pass: Origin is what a foreign page cannot leave out or forge."""
+
+    def __init__(self, app: Any, allow_origins: frozenset[str] = frozenset(),
+                 hosts: frozenset[str] | None = None) -> None:
+        self.app = app
+        self.allow_origins = frozenset(o.strip().lower().rstrip("/") for o in allow_origins)
+        self.hosts = hosts
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] in ("http", "websocket"):
+            headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
+            origin, host = headers.get("origin"), headers.get("host", "")
+            bad = None
+            if origin is not None and not origin_allowed(origin, self.allow_origins):
+                bad = f"origin {origin!r} not allowed (slam2d lab --allow-origin ORIGIN)"
+            elif self.hosts is not None and _hostname(host) not in self.hosts:
+                bad = f"host {host!r} not allowed"
+            if bad is not None:
+                log.warning("refused %s %s: %s", scope["type"], scope.get("path"), bad)
+                if scope["type"] == "websocket":
+                    await send({"type": "websocket.close", "code": 1008})
+                else:
+                    response = JSONResponse({"error": bad}, status_code=403)
+                    await response(scope, receive, send)
+                return
+        await self.app(scope, receive, send)
+
+
+def create_app(*, allow_origins: frozenset[str] = frozenset(), hosts: frozenset[str] | None = None) -> FastAPI:
+    """The lab application (run with uvicorn, ``ws_per_message_deflate=False``); every request passes
+    :class:`OriginHostGuard` first."""
     app = FastAPI(title="slam2d lab", docs_url=None, redoc_url=None, openapi_url=None)
+    app.add_middleware(OriginHostGuard, allow_origins=allow_origins, hosts=hosts)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
 
     @app.get("/")
@@ -228,11 +284,61 @@ def _is_disconnect(exc: BaseException) -> bool:
         isinstance(exc, RuntimeError) and ("close" in str(exc).lower() or "disconnect" in str(exc).lower()))
 
 
-def serve(host: str = "127.0.0.1", port: int = 8000, log_level: str = "warning") -> None:
-    """Run the lab with uvicorn (blocking). Per-message compression is off: it costs more CPU than it saves here."""
+def serve(host: str = "127.0.0.1", port: int = 8000, log_level: str = "warning", *,
+          allow_origins: frozenset[str] = frozenset(), announce: Any = None) -> None:
+    """Run the lab with uvicorn (blocking). The socket is bound here first, so a busy port is an ``OSError`` before
+    anything is printed; ``announce(url)`` is called once the bind succeeded. Per-message compression is off (it
+    costs more CPU than it saves here); connections that do not complete a request in ``HEADER_TIMEOUT_S`` close."""
+    import socket
+
     import uvicorn
 
-    # graceful shutdown gives open pages 0.3 s to close, then cancels them (Ctrl+C must stop the lab promptly)
-    config = uvicorn.Config(create_app(), host=host, port=port, log_level=log_level, ws_per_message_deflate=False,
-                            ws_max_size=WS_MAX_SIZE, timeout_graceful_shutdown=0.3)  # type: ignore[arg-type]
-    uvicorn.Server(config).run()
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind((host, port))
+        sock.listen(128)
+        sock.set_inheritable(True)
+    except OSError as e:
+        sock.close()
+        raise OSError(e.errno, e.strerror, f"{host}:{port}") from None
+    wildcard = host in ("0.0.0.0", "::", "")
+    hosts = None if wildcard else LOOPBACK_HOSTS | {host.lower(), f"[{host.lower()}]"} | {
+        _hostname(o.partition("://")[2]) for o in allow_origins}
+    config = uvicorn.Config(create_app(allow_origins=allow_origins, hosts=hosts), log_level=log_level,
+                            ws_per_message_deflate=False, ws_max_size=WS_MAX_SIZE, http=_timed_h11(),
+                            timeout_keep_alive=5, h11_max_incomplete_event_size=16 * 1024,
+                            timeout_graceful_shutdown=0.3)  # type: ignore[arg-type]  # Ctrl+C: 0.3 s
+    if announce is not None:
+        shown = f"[{host}]" if ":" in host else host
+        announce(f"http://{shown}:{sock.getsockname()[1]}/")
+    uvicorn.Server(config).run(sockets=[sock])
+
+
+def _timed_h11() -> Any:
+    """uvicorn's h11 protocol with a timer: a connection that has not completed a request within
+    ``HEADER_TIMEOUT_S`` of connecting (or of its last completed response) is closed. uvicorn itself waits forever
+    for the headers of a slow client."""
+    import h11
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    class TimedH11Protocol(H11Protocol):  # type: ignore[misc]
+        def connection_made(self, transport: Any) -> None:
+            super().connection_made(transport)
+            self._header_timer = self.loop.call_later(HEADER_TIMEOUT_S, self._header_check)
+
+        def _header_check(self) -> None:
+            if self.transport.is_closing() or self.transport.get_protocol() is not self:
+                return  # closed, or upgraded to a websocket
+            busy = self.cycle is not None and not self.cycle.response_complete
+            if not busy and self.conn.their_state in (h11.IDLE, h11.SEND_BODY):
+                self.transport.close()
+                return
+            self._header_timer = self.loop.call_later(HEADER_TIMEOUT_S, self._header_check)
+
+        def connection_lost(self, exc: Exception | None) -> None:
+            self._header_timer.cancel()
+            super().connection_lost(exc)
+
+    return TimedH11Protocol

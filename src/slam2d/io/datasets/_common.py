@@ -9,10 +9,11 @@ truth, and estimate :class:`MotionNoise` / sensor noise from data against ground
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+import functools
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -20,6 +21,7 @@ from scipy.optimize import nnls
 
 from slam2d.geometry import se2
 from slam2d.geometry.angles import angle_diff, wrap_angle
+from slam2d.io import bounded
 from slam2d.log import Log
 from slam2d.models.motion import odometry_to_rtr
 
@@ -48,6 +50,38 @@ class Table:
         return f"{self.path}:{int(self.lines[row])}"
 
 
+#: largest magnitude a dataset value may have (times in ns since 1970 are ~1e18); beyond it sums and squares overflow
+MAX_ABS_VALUE = 1e100
+
+F = TypeVar("F", bound=Callable[..., Log])
+
+
+def content_errors(what: str) -> Callable[[F], F]:
+    """Decorator of a loader ``fn(path, ...)``: every failure caused by the files' content leaves as
+    :class:`DatasetFormatError` naming the folder (the specific checks name ``file:line``), and a log with
+    non-finite odometry, stamps or observations is refused instead of returned."""
+
+    def wrap(fn: F) -> F:
+        @functools.wraps(fn)
+        def loader(path: str | Path, *args: Any, **kw: Any) -> Log:
+            try:
+                with np.errstate(all="ignore"):
+                    log = fn(path, *args, **kw)
+            except (DatasetFormatError, FileNotFoundError):
+                raise
+            except (ValueError, IndexError, KeyError, TypeError, ZeroDivisionError, OverflowError, FloatingPointError,
+                    np.linalg.LinAlgError) as e:
+                raise DatasetFormatError(f"{path}: inconsistent {what} data ({type(e).__name__}: {e})") from None
+            bad = [n for n in ("stamps_s", "odometry", "obs_range_m") if not np.all(np.isfinite(getattr(log, n)))]
+            if bad or np.any(np.diff(log.stamps_s) < 0):
+                raise DatasetFormatError(f"{path}: {what} data gives non-finite or backward values ({bad or 'stamps'})")
+            return log
+
+        return loader  # type: ignore[return-value]
+
+    return wrap
+
+
 def require_file(path: Path, what: str) -> Path:
     """``path`` if it is a file, else a :class:`DatasetFormatError` saying which file of which dataset is missing."""
     if not path.is_file():
@@ -65,15 +99,15 @@ def read_table(path: str | Path, columns: Sequence[str], *, delimiter: str | Non
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8", errors="strict")
+        text_lines = bounded.read_lines(path, DatasetFormatError, errors="strict")
     except FileNotFoundError:
         raise DatasetFormatError(f"{path}: no such file") from None
-    except UnicodeDecodeError as e:
-        raise DatasetFormatError(f"{path}: not a text file ({e.reason} at byte {e.start})") from None
+    except OSError as e:
+        raise DatasetFormatError(f"{path}: cannot read ({e.strerror or e})") from None
     ncol = len(columns)
     rows: list[list[str]] = []
     lines: list[int] = []
-    for no, raw in enumerate(text.splitlines(), start=1):
+    for no, raw in enumerate(text_lines, start=1):
         s = raw.strip()
         if not s or s.startswith(comment):
             continue
@@ -103,10 +137,12 @@ def read_table(path: str | Path, columns: Sequence[str], *, delimiter: str | Non
                     raise DatasetFormatError(
                         f"{path}:{lines[i]}: column {j + 1} ({columns[j]}): {tok!r} is not a number") from None
         bad = ~np.isfinite(data)
+    bad |= ~(np.abs(np.where(bad, 0.0, data)) <= MAX_ABS_VALUE)
     if bad.any():
         i, j = (int(k) for k in np.argwhere(bad)[0])
         raise DatasetFormatError(
-            f"{path}:{lines[i]}: column {j + 1} ({columns[j]}): {rows[i][j]!r} is not a finite number")
+            f"{path}:{lines[i]}: column {j + 1} ({columns[j]}): {rows[i][j]!r} is not a finite number of magnitude "
+            f"<= {MAX_ABS_VALUE:g}")
     return Table(path, data, np.asarray(lines, dtype=np.int64))
 
 

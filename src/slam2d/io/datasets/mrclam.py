@@ -38,6 +38,7 @@ from slam2d.io.datasets._common import (
     cap_log,
     check_integer,
     check_nondecreasing,
+    content_errors,
     fit_motion_noise,
     increments,
     integrate_velocity,
@@ -67,6 +68,7 @@ ODOMETRY_DELAY_S = 0.2
 CAMERA_DELAY_S = 0.04
 
 
+@content_errors("MRCLAM")
 def load_mrclam(path: str | Path, robot: int = 1, *, dt_s: float = 0.1, max_steps: int | None = None,
                 max_time_s: float | None = None, others: str = "drop", ground_truth: bool = True,
                 noise_window_s: float = 1.0, odometry_delay_s: float = ODOMETRY_DELAY_S,

@@ -37,6 +37,7 @@ from slam2d.io.datasets._common import (
     cap_log,
     check_integer,
     check_nondecreasing,
+    content_errors,
     fit_motion_noise,
     interpolate_poses,
     nearest_step,
@@ -55,6 +56,7 @@ PLAZA2_ROTATION_NOISE: dict[str, float] = {"alpha_rot_rot": 5.1e-5, "alpha_rot_t
                                            "min_rot_std_rad": 2.2e-3}
 
 
+@content_errors("Plaza")
 def load_plaza(path: str | Path, name: str = "Plaza1", *, max_steps: int | None = None,
                max_time_s: float | None = None, noise_window_s: float = 2.0) -> Log:
     """Load ``name`` (``Plaza1`` or ``Plaza2``) from the folder ``path`` as a range-only :class:`Log`.

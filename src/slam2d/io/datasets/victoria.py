@@ -53,6 +53,7 @@ from slam2d.io.datasets._common import (
     cap_log,
     check_integer,
     check_nondecreasing,
+    content_errors,
     increments,
     integrate_velocity,
     nearest_step,
@@ -89,6 +90,7 @@ def raw_folder(path: str | Path) -> Path:
     return p / "raw" if (p / "raw" / "odometry_aa3_dr.csv").is_file() else p
 
 
+@content_errors("Victoria Park")
 def load_victoria(path: str | Path, *, max_steps: int | None = None, max_time_s: float | None = None,
                   descriptors: bool = True, max_range_m: float | None = DEFAULT_MAX_RANGE_M,
                   laser_forward_m: float = CAR_A_M, steering_offset_rad: float = STEERING_OFFSET_RAD) -> Log:
