@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slam2d.io.carmen import CarmenConfig, flaser_angles, read_carmen, read_relations
+from slam2d.eval.relations import read_relations
+from slam2d.io.carmen import CarmenConfig, flaser_angles, read_carmen
 from slam2d.log import LogFormatError
 
 
@@ -116,8 +117,8 @@ def test_corrupt_bz2_and_missing_files(tmp_path: Path) -> None:
 def test_relations_reader(tmp_path: Path) -> None:
     p = tmp_path / "x.relations"
     p.write_text("1.0 2.0 0.5 0.1 0 0 0 0.2\n3.0 4.0 -0.5 0.0 0 0 0 -0.1\n")
-    st, rel = read_relations(p)
-    assert np.allclose(st, [[1, 2], [3, 4]]) and np.allclose(rel, [[0.5, 0.1, 0.2], [-0.5, 0.0, -0.1]])
+    r = read_relations(p)
+    assert np.allclose(r.stamps, [[1, 2], [3, 4]]) and np.allclose(r.rel, [[0.5, 0.1, 0.2], [-0.5, 0.0, -0.1]])
     p.write_text("1.0 2.0 0.5 0.1 0 0 0 0.2\n3.0 4.0 -0.5\n")
     with pytest.raises(LogFormatError, match=r"x\.relations:2: relation needs 8 fields"):
         read_relations(p)

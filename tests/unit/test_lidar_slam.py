@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -10,16 +11,16 @@ import pytest
 
 from conftest import dataset_path
 from slam2d.cli.main import main
+from slam2d.eval.relations import read_relations, relation_errors
 from slam2d.frontend.lidar_slam import (
     LidarSlamConfig,
     PoseGraphEdges,
     interpolate_poses,
-    relation_errors,
     run_lidar_slam,
     solve_pose_graph,
 )
 from slam2d.geometry import se2
-from slam2d.io.carmen import read_carmen, read_relations
+from slam2d.io.carmen import read_carmen
 from slam2d.sim import simulate
 
 
@@ -128,10 +129,10 @@ def test_aces_relation_errors() -> None:
     Measured (default config, scans tracked): 0.038 +- 0.034 m, 0.37 +- 0.48 deg (odometry: 0.55 m, 2.3 deg).
     """
     log = read_carmen(dataset_path("radish-laser-logs", "aces.clf.bz2"))
-    rs, rel = read_relations(dataset_path("radish-laser-logs", "aces.relations"))
+    rel = read_relations(dataset_path("radish-laser-logs", "aces.relations"))
     res = run_lidar_slam(log.poses, log.ranges_m, log.angles_rad, log.max_range_m)
-    slam = relation_errors(log.stamps_s, res.poses, rs, rel).summary()
-    odo = relation_errors(log.stamps_s, log.poses, rs, rel).summary()
+    slam = relation_errors(log.stamps_s, res.poses, rel).summary()
+    odo = relation_errors(log.stamps_s, log.poses, rel).summary()
     assert slam["missing"] == 0 and slam["relations"] == 1279
     assert slam["trans_mean_m"] < 0.06 and slam["rot_mean_deg"] < 0.6
     assert slam["trans_mean_m"] < 0.2 * odo["trans_mean_m"]
@@ -142,12 +143,12 @@ def test_tracking_every_scan_helps_between_keyframes(tmp_path: Path) -> None:
     """Scans between keyframes: odometry-placed (default) vs tracked by ICP; tracking is at least as accurate."""
     path, _, _ = write_carmen_from_sim(tmp_path, steps=200)
     c = read_carmen(path)
-    rs, rel = read_relations(tmp_path / "room.relations")
+    rel = read_relations(tmp_path / "room.relations")
     err = {}
     for track in (False, True):
         res = run_lidar_slam(c.poses, c.ranges_m, c.angles_rad, c.max_range_m,
                              LidarSlamConfig(track_scans=track, loop_closure=False))
-        err[track] = relation_errors(c.stamps_s, res.poses, rs, rel).summary()
+        err[track] = relation_errors(c.stamps_s, res.poses, rel).summary()
     assert err[True]["rot_mean_deg"] < err[False]["rot_mean_deg"]
     assert err[True]["trans_mean_m"] < 0.05
 
@@ -157,16 +158,17 @@ def test_fr079_needs_scan_tracking() -> None:
     """fr079 (first 1600 scans, 431 relations): odometry lags the laser in turns. Measured: default mode
     0.61 m / 4.3 deg (the map folds), --track-scans 0.054 m / 0.48 deg."""
     log = read_carmen(dataset_path("radish-laser-logs", "fr079.clf.bz2"))
-    rs, rel = read_relations(dataset_path("radish-laser-logs", "fr079.relations"))
+    rel = read_relations(dataset_path("radish-laser-logs", "fr079.relations"))
     n = 1600
     st = log.stamps_s[:n]
-    keep = (rs.min(axis=1) >= st[0]) & (rs.max(axis=1) <= st[-1])
+    keep = (rel.stamps.min(axis=1) >= st[0]) & (rel.stamps.max(axis=1) <= st[-1])
     assert keep.sum() > 400
+    part = dataclasses.replace(rel, stamps=rel.stamps[keep], rel=rel.rel[keep], lines=rel.lines[keep])
     out = {}
     for track in (False, True):
         res = run_lidar_slam(log.poses[:n], log.ranges_m[:n], log.angles_rad, log.max_range_m,
                              LidarSlamConfig(track_scans=track))
-        out[track] = relation_errors(st, res.poses, rs[keep], rel[keep]).summary()
+        out[track] = relation_errors(st, res.poses, part).summary()
     assert out[True]["missing"] == 0
     assert out[True]["trans_mean_m"] < 0.08 and out[True]["rot_mean_deg"] < 0.8
     assert out[False]["trans_mean_m"] > 3 * out[True]["trans_mean_m"]

@@ -59,8 +59,9 @@ def cmd(args: argparse.Namespace) -> int:
     import numpy as np
 
     from slam2d.config import with_overrides
-    from slam2d.frontend.lidar_slam import LidarSlamConfig, relation_errors, run_lidar_slam
-    from slam2d.io.carmen import read_carmen, read_relations
+    from slam2d.eval.relations import read_relations, relation_errors
+    from slam2d.frontend.lidar_slam import LidarSlamConfig, run_lidar_slam
+    from slam2d.io.carmen import read_carmen
     from slam2d.maps.occupancy import (
         OccupancyConfig,
         OccupancyGrid,
@@ -105,11 +106,11 @@ def cmd(args: argparse.Namespace) -> int:
     rel_path = Path(args.relations) if args.relations else Path(str(path).replace(".clf.bz2", ".relations")
                                                                      .replace(".clf", ".relations"))
     if rel_path.exists() and rel_path != path:
-        rs, rel = read_relations(rel_path)
+        rel = read_relations(rel_path)
         for label, poses in (("odometry", log.poses), ("slam", res.poses)):
-            s = relation_errors(log.stamps_s, poses, rs, rel).summary()
+            s = relation_errors(log.stamps_s, poses, rel).summary()
             record.update({f"{label}_{k}": v for k, v in s.items() if k not in ("relations", "missing")})
-        record["relations"] = len(rs)
+        record["relations"] = len(rel)
     print_table([record], list(record))
     if args.json:
         write_json(args.json, {**record, "config": dataclasses.asdict(cfg)})

@@ -29,7 +29,6 @@ from numpy.typing import ArrayLike, NDArray
 from slam2d.config import check_positive
 from slam2d.frontend.icp import ICPConfig, icp
 from slam2d.geometry import se2
-from slam2d.geometry.angles import wrap_angle
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -296,54 +295,3 @@ def interpolate_poses(odom: Array, keyframes: IntArray, kf_poses: Array) -> Arra
     """
     owner = np.searchsorted(keyframes, np.arange(len(odom)), side="right") - 1
     return se2.compose(kf_poses[owner], se2.between(odom[keyframes[owner]], odom))
-
-
-@dataclass(frozen=True)
-class RelationErrors:
-    """Kümmerle et al. (2009) relative-pose errors. Shapes: trans_m (R,), rot_rad (R,)."""
-
-    trans_m: Array
-    rot_rad: Array
-    missing: int
-    """relations whose timestamps matched no scan."""
-
-    def summary(self) -> dict[str, float]:
-        return {
-            "relations": float(len(self.trans_m)),
-            "trans_mean_m": float(np.mean(self.trans_m)),
-            "trans_std_m": float(np.std(self.trans_m)),
-            "trans_sq_mean_m2": float(np.mean(self.trans_m**2)),
-            "rot_mean_deg": float(np.degrees(np.mean(self.rot_rad))),
-            "rot_std_deg": float(np.degrees(np.std(self.rot_rad))),
-            "rot_sq_mean_deg2": float(np.mean(np.degrees(self.rot_rad) ** 2)),
-            "missing": float(self.missing),
-        }
-
-
-def relation_errors(stamps_s: ArrayLike, poses: ArrayLike, rel_stamps: ArrayLike, rel: ArrayLike,
-                    tol_s: float = 1e-3) -> RelationErrors:
-    """Compare estimated relative motions with true relations.
-
-    For each relation (t1, t2, d*): d = between(x(t1), x(t2)), error e = d* (-) d = between(d*, d);
-    translational error |e_xy|, rotational error |e_theta|. ``x(t)`` is the pose of the scan whose timestamp equals
-    t (within ``tol_s``). Shapes: stamps (S,), poses (S,3), rel_stamps (R,2), rel (R,3).
-    """
-    st = np.asarray(stamps_s, dtype=np.float64)
-    p = np.asarray(poses, dtype=np.float64)
-    rs = np.asarray(rel_stamps, dtype=np.float64).reshape(-1, 2)
-    rel = np.asarray(rel, dtype=np.float64).reshape(-1, 3)
-    order = np.argsort(st, kind="stable")
-    sorted_st = st[order]
-
-    def find(t: Array) -> tuple[IntArray, NDArray[np.bool_]]:
-        k = np.clip(np.searchsorted(sorted_st, t), 1, len(st) - 1)
-        left_better = np.abs(sorted_st[k - 1] - t) <= np.abs(sorted_st[k] - t)
-        k = np.where(left_better, k - 1, k)
-        return order[k], np.abs(sorted_st[k] - t) <= tol_s
-
-    i1, ok1 = find(rs[:, 0])
-    i2, ok2 = find(rs[:, 1])
-    ok = ok1 & ok2
-    d = se2.between(p[i1[ok]], p[i2[ok]])
-    e = se2.between(rel[ok], d)
-    return RelationErrors(np.hypot(e[:, 0], e[:, 1]), np.abs(wrap_angle(e[:, 2])), int((~ok).sum()))

@@ -266,29 +266,3 @@ def read_carmen(path: str | Path, config: CarmenConfig | None = None) -> CarmenL
         invalid_beams=int(invalid.sum()),
         problems=tuple(problems),
     )
-
-
-def read_relations(path: str | Path) -> tuple[Array, Array]:
-    """Read a Kümmerle et al. relations file ``t1 t2 x y z roll pitch yaw`` per line.
-
-    Returns ``(stamps (R,2), rel (R,3) [x, y, yaw])``: the true pose at t2 expressed in the frame of the pose at t1.
-    Raises :class:`LogFormatError` naming file:line on malformed lines.
-    """
-    path = Path(path)
-    st: list[list[float]] = []
-    rel: list[list[float]] = []
-    with open(path, encoding="ascii", errors="replace") as f:
-        for lineno, line in enumerate(f, start=1):
-            tok = line.split()
-            if not tok or tok[0].startswith("#"):
-                continue
-            if len(tok) < 8:
-                raise LogFormatError(f"{path}:{lineno}: relation needs 8 fields (t1 t2 x y z roll pitch yaw), "
-                                     f"got {len(tok)}")
-            try:
-                v = [float(t) for t in tok[:8]]
-            except ValueError:
-                raise LogFormatError(f"{path}:{lineno}: non-numeric field in relation") from None
-            st.append(v[:2])
-            rel.append([v[2], v[3], v[7]])
-    return np.asarray(st, dtype=np.float64).reshape(-1, 2), np.asarray(rel, dtype=np.float64).reshape(-1, 3)
