@@ -100,6 +100,19 @@ class IncrementalPoseGraph:
         elif loops.size:
             self._solve_local(t, loops)
 
+    def add_loop(self, i: int, j: int, z: Array, information: Array) -> None:
+        """An extra edge between two existing poses (an on-demand loop closure), followed by a local solve."""
+        t = self.num_poses - 1
+        if not (0 <= i < j <= t):
+            raise ValueError(f"add_loop: need 0 <= i < j <= {t} (got {i}, {j})")
+        self._grow()
+        e = self.num_edges
+        self._ei[e], self._ej[e], self._z[e], self._info[e] = i, j, z, information
+        self._adj[i].append(e)
+        self._adj[j].append(e)
+        self.num_edges += 1
+        self._solve_local(t, np.array([i], dtype=np.int64))
+
     def _graph(self, edges: NDArray[np.int64]) -> FactorGraph:
         g = FactorGraph()
         g.add_between(self._ei[edges], self._ej[edges], self._z[edges], self._info[edges])

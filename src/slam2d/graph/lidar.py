@@ -1,0 +1,360 @@
+"""Lidar SLAM as an estimator (``--estimator lidar``): scan-to-local-map tracking, keyframes, verified loop closures
+and an incremental pose graph; its map is an occupancy grid.
+
+Per step (one scan):
+
+1. tracking: the scan is matched by point-to-line ICP against the local map (the points of the newest
+   ``local_map_keyframes`` keyframes at their current estimates; KD-tree and normals built once per keyframe), from
+   the previous pose composed with the step's odometry; a failed match keeps the odometry guess (counted);
+2. keyframes: when the tracked pose moved ``keyframe_distance_m`` or turned ``keyframe_angle_rad`` since the last
+   keyframe, the scan becomes a keyframe: a node of the pose graph with a relative-pose edge from the previous
+   keyframe (the tracking covariance rotated into that keyframe's frame, floored);
+3. loop closures (every ``loop_every`` keyframes): old keyframes within ``loop_radius_m`` of the new one (and at
+   least ``loop_min_separation`` keyframes older) are verified against a local map around each: correlative
+   matching over a window (:mod:`slam2d.frontend.correlative`; the score must be high and no competing alignment
+   nearly as good, which rejects parallel identical aisles and corridor axes), then ICP refinement (fitness and
+   residual gates) and a chi-square gate on the ICP covariance between the correlative and ICP results;
+4. the keyframe and its edges enter :class:`~slam2d.graph.incremental.IncrementalPoseGraph`: a local solve when
+   the step brought a loop, a whole-graph iteration every ``graph.full_every`` keyframes, the whole graph to
+   convergence in ``finalize`` (bounded work per scan; no full re-analysis when one node is added).
+
+Every scan's pose is its keyframe's estimate composed with its tracked pose relative to that keyframe, so the whole
+trajectory follows the graph. Steps without a scan are placed by odometry.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slam2d.config import check_positive
+from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, LoopEvent
+from slam2d.frontend.correlative import CorrelativeConfig, correlative_match
+from slam2d.frontend.icp import ICPConfig, ICPTarget, icp, prepare_target
+from slam2d.geometry import se2
+from slam2d.graph.incremental import IncrementalConfig, IncrementalPoseGraph
+from slam2d.log import Scan, Step
+from slam2d.maps.occupancy import OccupancyConfig, OccupancyGrid
+
+Array = NDArray[np.float64]
+
+
+def _tracking_icp() -> ICPConfig:
+    return ICPConfig(max_correspondence_m=0.5, trim_fraction=0.85, tolerance=1e-4)
+
+
+def _loop_icp() -> ICPConfig:
+    return ICPConfig(max_correspondence_m=0.3, trim_fraction=0.8, max_iterations=50, tolerance=1e-4)
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class LidarSLAMConfig:
+    """Settings of the lidar SLAM estimator."""
+
+    keyframe_distance_m: float = 0.3
+    """tracked translation since the last keyframe that makes a new keyframe (m)."""
+    keyframe_angle_rad: float = 0.25
+    """tracked rotation since the last keyframe that makes a new keyframe (rad)."""
+    local_map_keyframes: int = 6
+    """newest keyframes whose points form the tracking target."""
+    max_range_m: float = 25.0
+    """beams longer than this are not matched (far points are sparse and noisy) (m)."""
+    min_range_m: float = 0.05
+    """beams shorter than this are not matched (the robot itself) (m)."""
+    icp: ICPConfig = field(default_factory=_tracking_icp)
+    """tracking scan matcher."""
+    min_fitness: float = 0.5
+    """a tracking match needs this fraction of the scan's points matched, else the odometry guess is kept."""
+    min_sigma_xy_m: float = 0.02
+    """floor on the standard deviation of a keyframe edge in x and y (ICP Hessians are over-confident) (m)."""
+    min_sigma_theta_rad: float = 0.005
+    """floor on the standard deviation of a keyframe edge in heading (rad)."""
+    loop_closure: bool = True
+    """search for loop closures (False: scan-matching odometry only)."""
+    loop_every: int = 5
+    """search loops every this many keyframes."""
+    loop_radius_m: float = 4.0
+    """old keyframes whose estimate lies within this distance of the new one are candidates (m)."""
+    loop_min_separation: int = 30
+    """keyframes closer than this in sequence are not candidates."""
+    loop_candidates: int = 3
+    """at most this many candidates (the nearest) are verified per search."""
+    loop_map_keyframes: int = 2
+    """a candidate's local map: its keyframe and this many on each side."""
+    correlative: CorrelativeConfig = field(default_factory=CorrelativeConfig)
+    """the correlative search of a loop candidate."""
+    loop_min_score: float = 0.5
+    """a loop's correlative score (mean likelihood of its points) must reach this."""
+    loop_max_ambiguity: float = 0.9
+    """a loop is rejected when a competing alignment outside the ambiguity radius scores this fraction of the
+    best (identical aisles, a corridor's axis)."""
+    loop_icp: ICPConfig = field(default_factory=_loop_icp)
+    """refinement of a loop's correlative match."""
+    loop_min_fitness: float = 0.6
+    """a loop's ICP refinement must match this fraction of the scan's points."""
+    loop_max_rmse_m: float = 0.08
+    """a loop's point-to-line residual RMS must be below this (m)."""
+    loop_chi2: float = 16.27
+    """chi-square gate (3 dof, p = 0.001) on the ICP covariance between the correlative and the ICP result."""
+    graph: IncrementalConfig = field(default_factory=lambda: IncrementalConfig(window=30, loop_neighbourhood=3,
+                                                                                iterations=3, full_every=200))
+    """incremental pose-graph settings (in keyframes)."""
+    map_resolution_m: float = 0.05
+    """cell size of the occupancy map (m)."""
+
+    def __post_init__(self) -> None:
+        check_positive(self, "keyframe_distance_m", "keyframe_angle_rad", "max_range_m", "min_sigma_xy_m",
+                       "min_sigma_theta_rad", "loop_radius_m", "loop_min_fitness", "loop_max_rmse_m", "loop_chi2",
+                       "map_resolution_m", "min_fitness", "loop_min_score", "loop_max_ambiguity")
+        for n in ("local_map_keyframes", "loop_every", "loop_candidates", "loop_min_separation"):
+            if getattr(self, n) < 1:
+                raise ValueError(f"LidarSLAMConfig.{n} must be >= 1 (got {getattr(self, n)})")
+        if self.loop_map_keyframes < 0:
+            raise ValueError(f"LidarSLAMConfig.loop_map_keyframes must be >= 0 (got {self.loop_map_keyframes})")
+
+
+def scan_points(scan: Scan, min_range: float, max_range: float) -> Array:
+    """Endpoints (K,2) in the scan frame of beams that hit within [min_range, min(max_range, scan max)) m."""
+    r = np.asarray(scan.ranges_m, dtype=np.float64)
+    a = np.asarray(scan.angles_rad, dtype=np.float64)
+    ok = np.isfinite(r) & (r > min_range) & (r < min(max_range, scan.max_range_m))
+    return np.stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])], axis=-1)
+
+
+def _relative_cov(cov: Array, frame_theta: float) -> Array:
+    """A world-frame [x, y, theta] covariance expressed in a frame rotated by ``frame_theta``."""
+    c, s = np.cos(frame_theta), np.sin(frame_theta)
+    j = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    return j @ cov @ j.T
+
+
+class LidarSLAM(EstimatorLifecycle):
+    """The lidar SLAM back end (see the module docstring)."""
+
+    def __init__(self, config: LidarSLAMConfig | None = None) -> None:
+        self.config = config or LidarSLAMConfig()
+
+    # ------------------------------------------------------------------ lifecycle
+    def reset(self, initial_pose: Array, *, rng: np.random.Generator) -> None:
+        self._lifecycle_reset()
+        self._pose = np.asarray(initial_pose, dtype=np.float64).copy()
+        self._cov = np.zeros((3, 3))
+        self.graph: IncrementalPoseGraph | None = None  # created with the first keyframe
+        self._kf_step: list[int] = []  # step index of each keyframe
+        self._kf_points: list[Array] = []  # scan-frame points of each keyframe
+        self._kf_scans: list[Scan] = []
+        self._owner = [-1]  # per pose (step 0..t): its keyframe (-1: none yet, ``_rel`` is then the world pose)
+        self._rel = [self._pose.copy()]
+        self._target: ICPTarget | None = None
+        self._target_version = -1
+        self._version = 0  # bumped whenever keyframe estimates change
+        self._traj_cache: tuple[int, Array] | None = None
+        self._new_loops: tuple[LoopEvent, ...] = ()
+        self.tracking_failures = 0
+        self.loops_accepted = 0
+        self.loops_rejected = 0
+        self.steps = 0
+
+    @property
+    def keyframe_poses(self) -> Array:
+        return np.zeros((0, 3)) if self.graph is None else self.graph.poses
+
+    @property
+    def keyframe_steps(self) -> NDArray[np.int64]:
+        return np.asarray(self._kf_step, dtype=np.int64)
+
+    def step(self, step: Step) -> None:
+        self._check_step()
+        cfg = self.config
+        self.steps += 1
+        self._new_loops = ()
+        guess = se2.compose(self._pose, step.odometry)
+        pts = None if step.scan is None else scan_points(step.scan, cfg.min_range_m, cfg.max_range_m)
+        if pts is None or len(pts) < cfg.icp.min_matches:
+            self._place(step.index, guess)
+            return
+        if self.graph is None:  # the first scan anchors the graph at its odometry pose
+            self._pose = guess
+            self._add_keyframe(step.index, guess, pts, step.scan, None, np.zeros((3, 3)))
+            return
+        target = self._local_target()
+        res = icp(pts, target, initial=guess, config=cfg.icp)
+        if res.converged and res.fitness >= cfg.min_fitness and np.all(np.isfinite(res.covariance)):
+            pose, cov = res.transform, res.covariance
+        else:
+            self.tracking_failures += 1
+            pose, cov = guess, np.diag([0.2, 0.2, 0.05]) ** 2  # the odometry guess, loosely
+        last = self.graph.poses[-1]
+        d = se2.between(last, pose)
+        if np.hypot(d[0], d[1]) >= cfg.keyframe_distance_m or abs(d[2]) >= cfg.keyframe_angle_rad:
+            self._add_keyframe(step.index, pose, pts, step.scan, d, cov)
+        else:
+            self._place(step.index, pose)
+        self._cov = cov
+
+    def _place(self, index: int, pose: Array) -> None:
+        """A non-keyframe pose: stored relative to the newest keyframe."""
+        self._pose = pose
+        if self.graph is None:
+            self._owner.append(-1)
+            self._rel.append(pose.copy())
+        else:
+            self._owner.append(len(self._kf_step) - 1)
+            self._rel.append(se2.between(self.graph.poses[-1], pose))
+
+    def _add_keyframe(self, index: int, pose: Array, pts: Array, scan: Scan | None, z: Array | None,
+                      cov: Array) -> None:
+        cfg = self.config
+        k = len(self._kf_step)
+        if self.graph is None:
+            self.graph = IncrementalPoseGraph(pose, cfg.graph)
+        self._kf_step.append(index)
+        self._kf_points.append(pts)
+        assert scan is not None
+        self._kf_scans.append(scan)
+        self._owner.append(k)
+        self._rel.append(np.zeros(3))
+        if z is None:
+            self._pose = pose
+            return
+        prev = self.graph.poses[-1]
+        floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
+        ei, ej, ez, einfo = [k - 1], [k], [z], [np.linalg.inv(_relative_cov(cov, float(prev[2])) + floor)]
+        events: list[LoopEvent] = []
+        if cfg.loop_closure and k % cfg.loop_every == 0:
+            for c, t_ck, info, ok in self._search_loops(k, pose, pts):
+                events.append(LoopEvent(self._kf_step[c], index, ok, t_ck))
+                if ok:
+                    ei.append(c)
+                    ej.append(k)
+                    ez.append(t_ck)
+                    einfo.append(info)
+        self.loops_accepted += sum(e.accepted for e in events)
+        self.loops_rejected += sum(not e.accepted for e in events)
+        self._new_loops = tuple(events)
+        before = self.graph.num_poses, self.graph.local_solves, self.graph.full_solves
+        self.graph.add_step(k, np.asarray(ei), np.asarray(ej), np.asarray(ez), np.asarray(einfo))
+        if (self.graph.local_solves, self.graph.full_solves) != before[1:]:
+            self._version += 1
+        self._pose = self.graph.poses[-1].copy()
+
+    # ------------------------------------------------------------------ maps
+    def _world_points(self, lo: int, hi: int, frame: Array | None = None) -> Array:
+        assert self.graph is not None
+        poses = self.graph.poses
+        pts = [se2.transform_points(poses[k], self._kf_points[k]) for k in range(max(lo, 0), min(hi, len(poses)))]
+        out = np.vstack(pts) if pts else np.zeros((0, 2))
+        return out if frame is None else se2.inverse_transform_points(frame, out)
+
+    def _local_target(self) -> ICPTarget:
+        key = (len(self._kf_step), self._version)
+        if self._target is None or self._target_version != hash(key):
+            n = len(self._kf_step)
+            self._target = prepare_target(self._world_points(n - self.config.local_map_keyframes, n),
+                                          self.config.icp)
+            self._target_version = hash(key)
+        return self._target
+
+    # ------------------------------------------------------------------ loops
+    def _search_loops(self, k: int, pose: Array, pts: Array) -> list[tuple[int, Array, Array, bool]]:
+        """Verify the candidates of new keyframe ``k`` at ``pose``: (old keyframe, T_old_new, information, ok)."""
+        cfg = self.config
+        assert self.graph is not None
+        old = k - cfg.loop_min_separation
+        if old <= 0:
+            return []
+        poses = self.graph.poses
+        dist = np.hypot(*(poses[:old, :2] - pose[:2]).T)
+        cand = np.flatnonzero(dist < cfg.loop_radius_m)
+        cand = cand[np.argsort(dist[cand], kind="stable")][: cfg.loop_candidates]
+        out = []
+        for c in cand.tolist():
+            m = cfg.loop_map_keyframes
+            target = self._world_points(c - m, c + m + 1, frame=poses[c])
+            guess = se2.between(poses[c], pose)
+            cm = correlative_match(pts, target, guess, cfg.correlative)
+            ok = cm.score >= cfg.loop_min_score and cm.ambiguity <= cfg.loop_max_ambiguity
+            info: Array = np.zeros((3, 3))
+            t = cm.transform
+            if ok:
+                res = icp(pts, target, initial=cm.transform, config=cfg.loop_icp)
+                ok = bool(res.converged and res.fitness >= cfg.loop_min_fitness and res.rmse_m <= cfg.loop_max_rmse_m
+                          and np.all(np.isfinite(res.covariance)))
+                if ok:
+                    floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
+                    info = np.asarray(np.linalg.inv(res.covariance + floor), dtype=np.float64)
+                    e = se2.local(res.transform, cm.transform)
+                    ok = float(e @ info @ e) <= cfg.loop_chi2
+                    t = res.transform
+            out.append((c, t, info, ok))
+        return out
+
+    def close_loop_now(self, z: Array) -> bool:
+        """Search loops for the newest keyframe now (the lab's "close loop now"); ``z`` (the newest landmark
+        observations) is not used: the scan of the newest keyframe is matched. True when a loop was accepted."""
+        self._check_step()
+        if self.graph is None or len(self._kf_step) < 2:
+            return False
+        k = len(self._kf_step) - 1
+        found = [r for r in self._search_loops(k, self.graph.poses[k], self._kf_points[k]) if r[3]]
+        events = [LoopEvent(self._kf_step[c], self._kf_step[k], True, t) for c, t, _, _ in found]
+        if found:
+            # the incremental graph takes edges only with a new pose: re-anchor through a whole-graph solve
+            for c, t, info, _ in found:
+                self.graph.add_loop(c, k, t, info)
+            self._version += 1
+            self._pose = self.graph.poses[-1].copy()
+            self.loops_accepted += len(found)
+        self._new_loops = self._new_loops + tuple(events)
+        return bool(found)
+
+    # ------------------------------------------------------------------ outputs
+    def trajectory(self) -> Array:
+        """Every pose so far (T+1,3): each scan's keyframe estimate composed with its pose relative to it."""
+        n = len(self._owner)
+        if self._traj_cache is not None and self._traj_cache[0] == hash((n, self._version, len(self._kf_step))):
+            return self._traj_cache[1]
+        owner = np.asarray(self._owner, dtype=np.int64)
+        rel = np.asarray(self._rel, dtype=np.float64).reshape(-1, 3)
+        out = rel.copy()
+        has = owner >= 0
+        if has.any():
+            out[has] = se2.compose(self.keyframe_poses[owner[has]], rel[has])
+        self._traj_cache = (hash((n, self._version, len(self._kf_step))), out)
+        return out
+
+    def estimate(self) -> Estimate:
+        self._check_ready()
+        return Estimate(
+            pose=self._pose.copy(),
+            pose_cov=self._cov.copy(),
+            trajectory=self.trajectory().copy() if self._finalized else None,
+            new_loops=self._new_loops,
+            diagnostics=Diagnostics(optimizations=0 if self.graph is None else self.graph.local_solves
+                                    + self.graph.full_solves, loops_accepted=self.loops_accepted,
+                                    loops_rejected=self.loops_rejected,
+                                    dropped_observations=self.tracking_failures),
+        )
+
+    def finalize(self) -> None:
+        if self._lifecycle_finalize() and self.graph is not None and self.graph.num_poses > 1:
+            self.graph.finalize()
+            self._version += 1
+            self._pose = self.trajectory()[-1].copy()
+        self._new_loops = ()
+
+    def occupancy_grid(self, resolution_m: float | None = None) -> OccupancyGrid:
+        """The map: every keyframe scan at its estimated pose in a log-odds grid (no-return beams clear nothing:
+        through windows and doors they would paint fans of free space outside)."""
+        if self.graph is None:
+            raise ValueError("LidarSLAM.occupancy_grid: no scan yet")
+        poses = self.keyframe_poses
+        world = self._world_points(0, len(poses))
+        grid = OccupancyGrid.around(np.vstack([world, poses[:, :2]]), 1.0,
+                                    OccupancyConfig(resolution_m=resolution_m or self.config.map_resolution_m,
+                                                    free_range_cap_m=0.0))
+        for p, s in zip(poses, self._kf_scans, strict=True):
+            grid.update(p, s.ranges_m, s.angles_rad, min(s.max_range_m, self.config.max_range_m))
+        return grid
