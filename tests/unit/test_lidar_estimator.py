@@ -64,3 +64,15 @@ def test_correlative_match_finds_an_offset_exactly_and_flags_a_repeated_pattern(
     wall = np.stack([np.linspace(-10, 10, 400), np.zeros(400)], -1)
     m = correlative_match(wall[150:250] + [0.3, 0.0], wall, np.zeros(3), CorrelativeConfig(window_xy_m=1.0))
     assert m.ambiguity > 0.95
+
+
+@pytest.mark.slow
+def test_no_false_loops_among_identical_warehouse_aisles() -> None:
+    """A CI-sized version of the benchmark's 10-seed count: a drive long enough to come back through the aisles
+    (from step ~830 on), so loop candidates are really verified, and none of the accepted ones is false."""
+    from slam2d.lab.runner import run_named
+
+    res, rec = run_named("lidar", "warehouse", seed=0, overrides={"steps": 1000}, progress=False)
+    d = res.final.diagnostics
+    assert d.loops_accepted + d.loops_rejected > 0  # candidates were verified
+    assert rec["loops_false"] == 0

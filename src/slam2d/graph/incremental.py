@@ -34,11 +34,18 @@ class IncrementalConfig:
     """Gauss-Newton iterations per local solve."""
     full_every: int = 500
     """steps between whole-graph solves (one Gauss-Newton iteration each)."""
+    loop_kernel: str | None = None
+    """robust kernel on loop edges (edges between non-consecutive poses), e.g. "cauchy"; None: plain least
+    squares. A wrong loop that slipped through verification then bends the graph less."""
+    loop_kernel_scale: float = 3.0
+    """scale of ``loop_kernel`` in standard deviations (sqrt(chi2))."""
 
     def __post_init__(self) -> None:
         for n in ("window", "iterations", "full_every"):
             if getattr(self, n) < 1:
                 raise ValueError(f"IncrementalConfig.{n} must be >= 1 (got {getattr(self, n)})")
+        if self.loop_kernel_scale <= 0:
+            raise ValueError(f"IncrementalConfig.loop_kernel_scale must be > 0 (got {self.loop_kernel_scale})")
         if self.loop_neighbourhood < 0:
             raise ValueError(f"IncrementalConfig.loop_neighbourhood must be >= 0 (got {self.loop_neighbourhood})")
 
@@ -115,7 +122,12 @@ class IncrementalPoseGraph:
 
     def _graph(self, edges: NDArray[np.int64]) -> FactorGraph:
         g = FactorGraph()
-        g.add_between(self._ei[edges], self._ej[edges], self._z[edges], self._info[edges])
+        c = self.config
+        loop = np.abs(self._ej[edges] - self._ei[edges]) > 1 if c.loop_kernel else np.zeros(len(edges), bool)
+        for sel, kernel in ((edges[~loop], None), (edges[loop], c.loop_kernel)):
+            if len(sel):
+                g.add_between(self._ei[sel], self._ej[sel], self._z[sel], self._info[sel], robust=kernel,
+                              robust_param=c.loop_kernel_scale)
         return g
 
     def _solve_local(self, t: int, loops: NDArray[np.int64]) -> None:

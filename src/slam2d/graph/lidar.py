@@ -93,20 +93,23 @@ class LidarSLAMConfig:
     loop_icp: ICPConfig = field(default_factory=_loop_icp)
     """refinement of a loop's correlative match."""
     loop_min_fitness: float = 0.6
-    """a loop's ICP refinement must match this fraction of the scan's points."""
+    """a loop's ICP refinement must match this fraction of the scan's points (at most ``loop_icp.trim_fraction``)."""
     loop_max_rmse_m: float = 0.08
     """a loop's point-to-line residual RMS must be below this (m)."""
+    loop_max_sigma_m: float = 0.05
+    """a loop's ICP covariance must constrain every direction: its largest translational standard deviation must
+    be below this (m). A corridor or aisle leaves the axis unconstrained, and a loop there would be a guess."""
     loop_chi2: float = 16.27
     """chi-square gate (3 dof, p = 0.001) on the ICP covariance between the correlative and the ICP result."""
-    graph: IncrementalConfig = field(default_factory=lambda: IncrementalConfig(window=30, loop_neighbourhood=3,
-                                                                                iterations=3, full_every=200))
+    graph: IncrementalConfig = field(default_factory=lambda: IncrementalConfig(
+        window=30, loop_neighbourhood=3, iterations=3, full_every=200, loop_kernel="cauchy", loop_kernel_scale=3.0))
     """incremental pose-graph settings (in keyframes)."""
     map_resolution_m: float = 0.05
     """cell size of the occupancy map (m)."""
 
     def __post_init__(self) -> None:
         check_positive(self, "keyframe_distance_m", "keyframe_angle_rad", "max_range_m", "min_sigma_xy_m",
-                       "min_sigma_theta_rad", "loop_radius_m", "loop_min_fitness", "loop_max_rmse_m", "loop_chi2",
+                       "min_sigma_theta_rad", "loop_radius_m", "loop_min_fitness", "loop_max_rmse_m", "loop_chi2", "loop_max_sigma_m",
                        "map_resolution_m", "min_fitness", "loop_min_score", "loop_max_ambiguity")
         for n in ("local_map_keyframes", "loop_every", "loop_candidates", "loop_min_separation"):
             if getattr(self, n) < 1:
@@ -267,11 +270,16 @@ class LidarSLAM(EstimatorLifecycle):
             return []
         poses = self.graph.poses
         dist = np.hypot(*(poses[:old, :2] - pose[:2]).T)
-        cand = np.flatnonzero(dist < cfg.loop_radius_m)
-        cand = cand[np.argsort(dist[cand], kind="stable")][: cfg.loop_candidates]
+        near = np.flatnonzero(dist < cfg.loop_radius_m)
+        m = cfg.loop_map_keyframes
+        cand: list[int] = []
+        for c in near[np.argsort(dist[near], kind="stable")].tolist():  # nearest first, one per local map
+            if all(abs(c - o) > m for o in cand):
+                cand.append(c)
+            if len(cand) == cfg.loop_candidates:
+                break
         out = []
-        for c in cand.tolist():
-            m = cfg.loop_map_keyframes
+        for c in cand:
             target = self._world_points(c - m, c + m + 1, frame=poses[c])
             guess = se2.between(poses[c], pose)
             cm = correlative_match(pts, target, guess, cfg.correlative)
@@ -281,7 +289,8 @@ class LidarSLAM(EstimatorLifecycle):
             if ok:
                 res = icp(pts, target, initial=cm.transform, config=cfg.loop_icp)
                 ok = bool(res.converged and res.fitness >= cfg.loop_min_fitness and res.rmse_m <= cfg.loop_max_rmse_m
-                          and np.all(np.isfinite(res.covariance)))
+                          and np.all(np.isfinite(res.covariance))
+                          and np.sqrt(np.linalg.eigvalsh(res.covariance[:2, :2])[-1]) <= cfg.loop_max_sigma_m)
                 if ok:
                     floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
                     info = np.asarray(np.linalg.inv(res.covariance + floor), dtype=np.float64)
