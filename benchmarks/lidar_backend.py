@@ -6,9 +6,9 @@
 Per log (one process each, so that peak RSS is the log's own): Kümmerle relation errors (mean +- std, trans and
 rot) of the default ``lidar`` estimator, per-scan latency p50/p99/max (one ``step`` + ``estimate``), the whole-log
 real-time factor (log duration / processing time, finalize included) and peak RSS. Simulation: ATE of the lidar
-estimator vs dead reckoning on room and warehouse, and accepted / false loops over ``--sim-seeds`` warehouse seeds
-(identical aisles, a 1200-step drive that revisits them; the runner counts a loop false when its two poses are truly > 16 m apart or its measurement is off
-the truth by > 1 m).
+estimator vs dead reckoning on room and warehouse, and accepted / false loops over ``--sim-seeds`` warehouse
+seeds (identical aisles, a 1200-step drive that revisits them; the runner counts a loop false when its two poses
+are truly > 16 m apart or its measurement is off the truth by > 1 m).
 """
 
 from __future__ import annotations
@@ -42,8 +42,10 @@ def one_log(name: str) -> dict[str, Any]:
     d = res.final.diagnostics
     rec.update(latency_ms_p50=float(np.percentile(ms, 50)), latency_ms_p99=float(np.percentile(ms, 99)),
                latency_ms_max=float(ms.max()), processing_s=total, duration_s=duration,
-               real_time_factor=duration / total, peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-               loops_accepted=d.loops_accepted, loops_rejected=d.loops_rejected, tracking_failures=d.dropped_observations)
+               real_time_factor=duration / total,
+               peak_rss_mb=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+               loops_accepted=d.loops_accepted, loops_rejected=d.loops_rejected,
+               tracking_failures=d.dropped_observations)
     return rec
 
 

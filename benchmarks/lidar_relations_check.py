@@ -2,12 +2,13 @@
 
     python benchmarks/lidar_relations_check.py
 
-For every relation (short ones, |t2 - t1| < 2 s, and long ones, which close loops) (|t2 - t1| < 2 s, where the two scans see nearly the same scene) the raw scan at t2 is
-moved into the frame of the scan at t1 by the relation itself, and we measure how well the two raw scans then
-overlap: the fraction of t2's points within 10 cm of a t1 point (``inliers``). A correct relation gives the overlap
-of two scans taken at nearly the same place; a wrong one does not. For the short ones the same is measured with the
-logged odometry's relative pose instead of the relation (a reference that drifts but is locally decent). Also counted: relations
-whose (x, y) equals the logged odometry's relative translation to 5 decimals (a relation copied from odometry).
+For every relation (short ones, |t2 - t1| < 2 s, where the two scans see nearly the same scene, and long ones,
+which close loops) the raw scan at t2 is moved into the frame of the scan at t1 by the relation itself, and we
+measure how well the two raw scans then overlap: the fraction of t2's points within 10 cm of a t1 point
+(``inliers``). A correct relation gives the overlap of two scans taken at nearly the same place; a wrong one does
+not. For the short ones the same is measured with the logged odometry's relative pose instead of the relation (a
+reference that drifts but is locally decent). Also counted: relations whose (x, y) equals the logged odometry's
+relative translation to 5 decimals (a relation copied from odometry).
 """
 
 from __future__ import annotations
@@ -58,7 +59,8 @@ def check(name: str) -> None:
                         for a, b, t in zip(idx[long, 0], idx[long, 1], rel.rel[long], strict=True)])
     if len(by_long):
         print(f"{'':10s} long relations {long.sum():4d}: scan inliers under the relation median "
-              f"{np.median(by_long):.2f} (p10 {np.percentile(by_long, 10):.2f}); below 0.3: {int(np.sum(by_long < 0.3))}")
+              f"{np.median(by_long):.2f} (p10 {np.percentile(by_long, 10):.2f}); "
+              f"below 0.3: {int(np.sum(by_long < 0.3))}")
     if copied.any():
         print(f"{'':10s} copied ones: inliers under the relation median {np.median(by_rel[copied]):.2f}, under "
               f"odometry {np.median(by_odo[copied]):.2f}; |yaw(relation) - yaw(odometry)| median "
