@@ -109,8 +109,8 @@ class LidarSLAMConfig:
 
     def __post_init__(self) -> None:
         check_positive(self, "keyframe_distance_m", "keyframe_angle_rad", "max_range_m", "min_sigma_xy_m",
-                       "min_sigma_theta_rad", "loop_radius_m", "loop_min_fitness", "loop_max_rmse_m", "loop_chi2", "loop_max_sigma_m",
-                       "map_resolution_m", "min_fitness", "loop_min_score", "loop_max_ambiguity")
+                       "min_sigma_theta_rad", "loop_radius_m", "loop_min_fitness", "loop_max_rmse_m", "loop_chi2",
+                       "loop_max_sigma_m", "map_resolution_m", "min_fitness", "loop_min_score", "loop_max_ambiguity")
         for n in ("local_map_keyframes", "loop_every", "loop_candidates", "loop_min_separation"):
             if getattr(self, n) < 1:
                 raise ValueError(f"LidarSLAMConfig.{n} must be >= 1 (got {getattr(self, n)})")
