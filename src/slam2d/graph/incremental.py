@@ -155,6 +155,10 @@ class IncrementalPoseGraph:
         self.full_solves += 1
         return summary
 
+    def solve_full(self, iterations: int) -> Summary:
+        """Gauss-Newton on the whole graph (``iterations`` at most), from the current estimate."""
+        return self._solve_full(iterations)
+
     def finalize(self) -> Summary:
         """Optimise the whole graph to convergence (Levenberg-Marquardt)."""
         return self._solve_full(100, "lm")

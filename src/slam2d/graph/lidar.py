@@ -101,8 +101,20 @@ class LidarSLAMConfig:
     be below this (m). A corridor or aisle leaves the axis unconstrained, and a loop there would be a guess."""
     loop_chi2: float = 16.27
     """chi-square gate (3 dof, p = 0.001) on the ICP covariance between the correlative and the ICP result."""
+    loop_confirmations: int = 0
+    """a verified loop enters the graph only once another verified loop (from the same or a later keyframe within
+    ``loop_pair_keyframes``) agrees with it (0: each verified loop enters at once)."""
+    loop_pair_keyframes: int = 25
+    """how long (in keyframes) a verified loop waits for a partner."""
+    loop_pair_xy_m: float = 0.15
+    """two loops agree when their implied poses of the new keyframe differ by less than this (m) ..."""
+    loop_pair_theta_rad: float = 0.05
+    """... and this (rad)."""
+    loop_full_iterations: int = 5
+    """Gauss-Newton iterations on the whole keyframe graph after a step that added loops (0: the incremental
+    graph's local solve only)."""
     graph: IncrementalConfig = field(default_factory=lambda: IncrementalConfig(
-        window=30, loop_neighbourhood=3, iterations=3, full_every=200, loop_kernel="cauchy", loop_kernel_scale=3.0))
+        window=30, loop_neighbourhood=3, iterations=3, full_every=200, loop_kernel=None))
     """incremental pose-graph settings (in keyframes)."""
     map_resolution_m: float = 0.05
     """cell size of the occupancy map (m)."""
@@ -110,8 +122,12 @@ class LidarSLAMConfig:
     def __post_init__(self) -> None:
         check_positive(self, "keyframe_distance_m", "keyframe_angle_rad", "max_range_m", "min_sigma_xy_m",
                        "min_sigma_theta_rad", "loop_radius_m", "loop_min_fitness", "loop_max_rmse_m", "loop_chi2",
-                       "loop_max_sigma_m", "map_resolution_m", "min_fitness", "loop_min_score", "loop_max_ambiguity")
-        for n in ("local_map_keyframes", "loop_every", "loop_candidates", "loop_min_separation"):
+                       "loop_max_sigma_m", "map_resolution_m", "loop_pair_xy_m", "loop_pair_theta_rad",
+                       "min_fitness", "loop_min_score", "loop_max_ambiguity")
+        if self.loop_confirmations not in (0, 1):
+            raise ValueError(f"LidarSLAMConfig.loop_confirmations must be 0 or 1 (got {self.loop_confirmations})")
+        for n in ("local_map_keyframes", "loop_every", "loop_candidates", "loop_min_separation",
+                  "loop_pair_keyframes"):
             if getattr(self, n) < 1:
                 raise ValueError(f"LidarSLAMConfig.{n} must be >= 1 (got {getattr(self, n)})")
         if self.loop_map_keyframes < 0:
@@ -155,6 +171,8 @@ class LidarSLAM(EstimatorLifecycle):
         self._version = 0  # bumped whenever keyframe estimates change
         self._traj_cache: tuple[int, Array] | None = None
         self._new_loops: tuple[LoopEvent, ...] = ()
+        # verified loops of the last ``loop_pair_keyframes`` keyframes: (old kf, new kf, T, information, accepted)
+        self._pool: list[tuple[int, int, Array, Array, bool]] = []
         self.tracking_failures = 0
         self.loops_accepted = 0
         self.loops_rejected = 0
@@ -226,22 +244,55 @@ class LidarSLAM(EstimatorLifecycle):
         floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
         ei, ej, ez, einfo = [k - 1], [k], [z], [np.linalg.inv(_relative_cov(cov, float(prev[2])) + floor)]
         events: list[LoopEvent] = []
+        late: list[tuple[int, int, Array, Array]] = []  # pending loops of older keyframes confirmed now
         if cfg.loop_closure and k % cfg.loop_every == 0:
             for c, t_ck, info, ok in self._search_loops(k, pose, pts):
-                events.append(LoopEvent(self._kf_step[c], index, ok, t_ck))
-                if ok:
+                partners = [q for q in self._pool if self._consistent(q, (c, k, t_ck), pose)] if ok else []
+                accept = ok and (cfg.loop_confirmations == 0 or bool(partners))
+                events.append(LoopEvent(self._kf_step[c], index, accept, t_ck))
+                if accept:
                     ei.append(c)
                     ej.append(k)
                     ez.append(t_ck)
                     einfo.append(info)
+                for q in partners:
+                    if not q[4]:  # a pending loop confirmed by this one enters the graph too
+                        late.append(q[:4])
+                        events.append(LoopEvent(self._kf_step[q[0]], self._kf_step[q[1]], True, q[2]))
+                        self._pool[self._pool.index(q)] = (*q[:4], True)
+                if ok:
+                    self._pool.append((c, k, t_ck, info, accept))
+            self._pool = [q for q in self._pool if k - q[1] <= cfg.loop_pair_keyframes]
         self.loops_accepted += sum(e.accepted for e in events)
         self.loops_rejected += sum(not e.accepted for e in events)
         self._new_loops = tuple(events)
         before = self.graph.num_poses, self.graph.local_solves, self.graph.full_solves
         self.graph.add_step(k, np.asarray(ei), np.asarray(ej), np.asarray(ez), np.asarray(einfo))
+        for c, kk, t_ck, info in late:
+            self.graph.add_loop(c, kk, t_ck, info)
+        if cfg.loop_full_iterations and (len(ei) > 1 or late):
+            # a loop moves everything between its ends: a local solve leaves a kink that the final optimisation
+            # may not undo (measured on aces: long relations 1.5 m with local solves only)
+            self.graph.solve_full(cfg.loop_full_iterations)
         if (self.graph.local_solves, self.graph.full_solves) != before[1:]:
             self._version += 1
         self._pose = self.graph.poses[-1].copy()
+
+    def _consistent(self, old: tuple[int, int, Array, Array, bool], new: tuple[int, int, Array], pose: Array) -> bool:
+        """Do two verified loops (c1, k1, T_c1_k1) and (c2, k, T_c2_k) agree? Going from c1 to the new keyframe
+        through the first loop and the tracked chain must land where the old chain c1 -> c2 and the second loop
+        put it (a wrong loop among identical places agrees with a right one only by accident)."""
+        assert self.graph is not None
+        cfg = self.config
+        c1, k1, t1 = old[0], old[1], old[2]
+        c2, k2, t2 = new
+        if c1 == c2 and k1 == k2:
+            return False
+        p = self.graph.poses
+        lhs = t1 if k1 == k2 else se2.compose(t1, se2.between(p[k1], pose))
+        rhs = se2.compose(se2.between(p[c1], p[c2]), t2)
+        e = se2.local(lhs, rhs)
+        return bool(np.hypot(e[0], e[1]) <= cfg.loop_pair_xy_m and abs(e[2]) <= cfg.loop_pair_theta_rad)
 
     # ------------------------------------------------------------------ maps
     def _world_points(self, lo: int, hi: int, frame: Array | None = None) -> Array:
