@@ -78,3 +78,25 @@ def test_lidar_alias_bad_dataset_name_and_bad_override(tmp_path: Path, capsys: p
     assert main(["lidar", "--dataset", str(path), "--out", str(tmp_path / "m.png"), "--relations",
                  str(tmp_path / "none.relations")]) == 2
     assert (tmp_path / "m.png").read_bytes() == before
+
+
+#: ACES, first 3000 scans, default config (measured on this branch; deterministic: the same on every run)
+ACES_HEAD = 3000
+
+
+@pytest.mark.slow
+def test_aces_head_relation_errors_are_pinned() -> None:
+    """The default lidar estimator on the first 3000 ACES scans, scored on the relations that fall inside them."""
+    from slam2d.cli.lidar import load_laser_log, original_stamps
+
+    log = load_laser_log(str(dataset_path("radish-laser-logs", "aces.clf.bz2"))).head(ACES_HEAD - 1)
+    rel = read_relations(dataset_path("radish-laser-logs", "aces.relations"))
+    res = run(make_estimator("lidar"), log, rng=np.random.default_rng(0), progress=False)
+    slam = relation_errors(original_stamps(log), res.trajectory, rel, on_missing="skip").summary()
+    odo = relation_errors(original_stamps(log), se2.compose_chain(log.initial_pose, log.odometry), rel,
+                          on_missing="skip").summary()
+    assert slam["relations"] == PIN["relations"]
+    assert slam["trans_mean_m"] == pytest.approx(PIN["trans_mean_m"], abs=0.002)
+    assert slam["rot_mean_deg"] == pytest.approx(PIN["rot_mean_deg"], abs=0.03)
+    assert slam["trans_mean_m"] < 0.3 * odo["trans_mean_m"]
+    assert res.final.diagnostics.loops_accepted > 0

@@ -73,13 +73,13 @@ class LidarSLAMConfig:
     """floor on the standard deviation of a keyframe edge in heading (rad)."""
     loop_closure: bool = True
     """search for loop closures (False: scan-matching odometry only)."""
-    loop_every: int = 5
+    loop_every: int = 2
     """search loops every this many keyframes."""
     loop_radius_m: float = 4.0
     """old keyframes whose estimate lies within this distance of the new one are candidates (m)."""
     loop_min_separation: int = 30
     """keyframes closer than this in sequence are not candidates."""
-    loop_candidates: int = 3
+    loop_candidates: int = 4
     """at most this many candidates (the nearest) are verified per search."""
     loop_map_keyframes: int = 2
     """a candidate's local map: its keyframe and this many on each side."""
@@ -101,7 +101,7 @@ class LidarSLAMConfig:
     be below this (m). A corridor or aisle leaves the axis unconstrained, and a loop there would be a guess."""
     loop_chi2: float = 16.27
     """chi-square gate (3 dof, p = 0.001) on the ICP covariance between the correlative and the ICP result."""
-    loop_confirmations: int = 0
+    loop_confirmations: int = 1
     """a verified loop enters the graph only once another verified loop (from the same or a later keyframe within
     ``loop_pair_keyframes``) agrees with it (0: each verified loop enters at once)."""
     loop_pair_keyframes: int = 25
