@@ -24,7 +24,7 @@ trajectory follows the graph. Steps without a scan are placed by odometry.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -90,6 +90,12 @@ class LidarSLAMConfig:
     loop_max_ambiguity: float = 0.9
     """a loop is rejected when a competing alignment outside the ambiguity radius scores this fraction of the
     best (identical aisles, a corridor's axis)."""
+    loop_wide_window_m: float = 4.0
+    """a loop that passed every gate is searched again over +- this window (coarse only) and rejected when another
+    alignment there scores ``loop_max_ambiguity`` of the best: identical aisles farther apart than the verification
+    window (m; 0: off)."""
+    loop_wide_step_cells: int = 6
+    """coarse translation step of that wide search, in ``correlative.resolution_m`` cells."""
     loop_icp: ICPConfig = field(default_factory=_loop_icp)
     """refinement of a loop's correlative match."""
     loop_min_fitness: float = 0.6
@@ -348,6 +354,8 @@ class LidarSLAM(EstimatorLifecycle):
                     e = se2.local(res.transform, cm.transform)
                     ok = float(e @ info @ e) <= cfg.loop_chi2
                     t = res.transform
+                if ok and cfg.loop_wide_window_m > 0:
+                    ok = self._unique_in_wide_window(pts, target, t)
             out.append((c, t, info, ok))
         return out
 
@@ -369,6 +377,15 @@ class LidarSLAM(EstimatorLifecycle):
             self.loops_accepted += len(found)
         self._new_loops = self._new_loops + tuple(events)
         return bool(found)
+
+    def _unique_in_wide_window(self, pts: Array, target: Array, t: Array) -> bool:
+        """Is ``t`` the only good alignment within ``loop_wide_window_m``? A coarse correlative search over the wide
+        window (every third point, coarse steps of ``loop_wide_step_cells`` cells): a parallel identical aisle
+        lies outside the verification window but inside this one, and scores as well."""
+        cfg = self.config
+        wide = replace(cfg.correlative, window_xy_m=cfg.loop_wide_window_m, coarse_cells=cfg.loop_wide_step_cells,
+                       max_refined=1)
+        return correlative_match(pts[::3], target, t, wide).ambiguity <= cfg.loop_max_ambiguity
 
     # ------------------------------------------------------------------ outputs
     def trajectory(self) -> Array:
