@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from slam2d.io.carmen import CarmenConfig, flaser_angles, read_carmen, read_relations
+from slam2d.eval.relations import read_relations
+from slam2d.io.carmen import CarmenConfig, flaser_angles, read_carmen
 from slam2d.log import LogFormatError
 
 
@@ -89,9 +90,10 @@ def test_truncated_and_non_numeric_lines_name_file_and_line(tmp_path: Path) -> N
 
 def test_nan_inf_and_max_range_beams_become_no_returns(tmp_path: Path) -> None:
     lines = good_lines()
-    lines[3] = flaser([float("nan"), float("inf"), 81.83, -1.0], (0.0, 0.0, 0.0), 1.05)
+    lines[3] = flaser([float("nan"), float("inf"), 81.83, -1.0, 2.0], (0.0, 0.0, 0.0), 1.05)
+    lines[5] = flaser([1.1, 2.1, 3.1, 4.1, 5.1], (0.1, 0.0, 0.05), 1.15)
     log = read_carmen(write(tmp_path, lines), CarmenConfig(max_range_m=40.0))
-    assert np.all(log.ranges_m[0] == 40.0) and log.invalid_beams == 3
+    assert np.all(log.ranges_m[0, :4] == 40.0) and log.invalid_beams == 3
     assert np.all(log.ranges_m[1] < 40.0)
     nanpose = good_lines()
     nanpose[3] = flaser([1.0, 2.0, 3.0, 4.0], (float("nan"), 0.0, 0.0), 1.05)
@@ -116,8 +118,46 @@ def test_corrupt_bz2_and_missing_files(tmp_path: Path) -> None:
 def test_relations_reader(tmp_path: Path) -> None:
     p = tmp_path / "x.relations"
     p.write_text("1.0 2.0 0.5 0.1 0 0 0 0.2\n3.0 4.0 -0.5 0.0 0 0 0 -0.1\n")
-    st, rel = read_relations(p)
-    assert np.allclose(st, [[1, 2], [3, 4]]) and np.allclose(rel, [[0.5, 0.1, 0.2], [-0.5, 0.0, -0.1]])
+    r = read_relations(p)
+    assert np.allclose(r.stamps, [[1, 2], [3, 4]]) and np.allclose(r.rel, [[0.5, 0.1, 0.2], [-0.5, 0.0, -0.1]])
     p.write_text("1.0 2.0 0.5 0.1 0 0 0 0.2\n3.0 4.0 -0.5\n")
     with pytest.raises(LogFormatError, match=r"x\.relations:2: relation needs 8 fields"):
         read_relations(p)
+
+
+def test_bad_scans_are_errors_or_counted_skips_with_file_and_line(tmp_path: Path) -> None:
+    lines = good_lines()
+    # NaN / inf / negative beams: kept as no-returns, counted, their line named
+    lines[5] = flaser([float("nan"), float("inf"), -1.0, 4.1], (0.1, 0.0, 0.05), 1.15)
+    log = read_carmen(write(tmp_path, lines))
+    assert log.invalid_beams == 3 and log.invalid_beam_lines == (f"{tmp_path / 'log.clf'}:6: 3 NaN/inf/negative "
+                                                                  "ranges read as no return",)
+    assert np.all(log.ranges_m[1, :3] == log.max_range_m)
+    # zero usable beams (all no-return) and FLASER 0 (used to divide by zero): skipped, named
+    lines = [*good_lines(), flaser([81.83] * 4, (0.2, 0, 0), 1.25), "FLASER 0 0 0 0 0 0 0 1.3 nohost 1"]
+    log = read_carmen(write(tmp_path, lines))
+    assert log.num_scans == 2 and len(log.problems) == 2
+    assert log.problems[0].endswith("log.clf:7: FLASER record with no usable beam (4 readings, all NaN, inf, <= 0 "
+                                    "or >= max range 40.0 m): scan skipped") and ":8: FLASER" in log.problems[1]
+    # timestamps going backwards: kept in file order and listed (default), an error naming the line, or a skip
+    lines = [*good_lines(), flaser([1.0, 2.0, 3.0, 4.0], (0.2, 0, 0), 1.10)]
+    log = read_carmen(write(tmp_path, lines))
+    assert log.num_scans == 3 and len(log.backwards_stamps) == 1 and "log.clf:7: FLASER record: timestamp 1.100000 " \
+        "goes backwards" in log.backwards_stamps[0]
+    assert np.all(np.diff(log.to_log().stamps_s) >= 0)
+    with pytest.raises(LogFormatError, match=r"log\.clf:7: FLASER record: timestamp 1\.100000 goes backwards"):
+        read_carmen(write(tmp_path, lines), CarmenConfig(backwards_stamps="raise"))
+    log = read_carmen(write(tmp_path, lines), CarmenConfig(backwards_stamps="skip", on_error="skip"))
+    assert log.num_scans == 2 and "log.clf:7" in log.problems[0]
+    # fewer beams than the first scan's angle table
+    lines = [*good_lines(), flaser([1.0, 2.0, 3.0], (0.2, 0, 0), 1.3)]
+    with pytest.raises(LogFormatError, match=r"log\.clf:7: FLASER record: 3 beams"):
+        read_carmen(write(tmp_path, lines))
+
+
+def test_to_log_keeps_the_original_stamps(tmp_path: Path) -> None:
+    lines = [*good_lines(), flaser([1.2, 2.2, 3.2, 4.2], (0.2, 0.0, 0.1), 976052896.784509)]
+    log = read_carmen(write(tmp_path, lines)).to_log()
+    assert log.metadata["stamps_original_s"] == [1.05, 1.15, 976052896.784509]
+    assert log.num_steps == 2 and log.scan_ranges_m is not None and log.scan_ranges_m.shape == (2, 4)
+    assert log.metadata["dataset"] == "log"

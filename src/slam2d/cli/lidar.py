@@ -1,135 +1,137 @@
-"""``slam2d lidar``: scan-matching + loop-closure SLAM on a CARMEN laser log; writes the occupancy map as PNG."""
+"""Laser-log glue for ``slam2d run`` (CARMEN logs as ``Log``s, ``--trajectory``, ``--map``, relation errors) and
+``slam2d lidar``, a thin alias of ``slam2d run --estimator lidar``."""
 
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 from typing import Any
 
-from slam2d.cli.common import (
-    add_force_argument,
-    check_number,
-    check_outputs,
-    overrides_from,
-    print_table,
-    write_json,
-)
-from slam2d.io.atomic import atomic_path
+import numpy as np
 
-DATASETS = {"intel-laser": "intel", "intel": "intel", "aces": "aces", "fr079": "fr079", "mit-csail": "mit-csail"}
+from slam2d.cli.common import add_force_argument
+from slam2d.io.atomic import atomic_path
+from slam2d.log import Log
 
 
 def register(sub: Any) -> None:
-    p = sub.add_parser("lidar", help="2D lidar SLAM on a CARMEN log (occupancy map PNG)",
-                       description="Scan-matching odometry (ICP to a local map), ICP loop closures and a pose "
-                                   "graph over a CARMEN .clf log; writes the occupancy map as PNG and, when a "
+    p = sub.add_parser("lidar", help="2D lidar SLAM on a CARMEN log (alias of 'run --estimator lidar')",
+                       description="Lidar SLAM (the 'lidar' estimator) over a CARMEN .clf log or a Radish log name; "
+                                   "writes the occupancy map as PNG, optionally the TUM trajectory and, when a "
                                    "<log>.relations file sits next to the log, the Kümmerle et al. relation errors.")
     p.add_argument("--dataset", required=True,
-                   help=f"one of {', '.join(sorted(DATASETS))} (from ../shared/datasets/radish-laser-logs or "
-                        "$SLAM2D_DATA) or a path to a .clf/.clf.bz2 file")
-    p.add_argument("--out", default=None, help="occupancy map PNG (default <dataset>_map.png)")
-    p.add_argument("--resolution", type=float, default=0.05, help="grid cell size in m (default 0.05)")
+                   help="aces, intel, fr079, mit-csail (under the data directory's radish-laser-logs) or a path to "
+                        "a .clf/.clf.bz2 file")
+    p.add_argument("--out", default=None, help="occupancy map PNG (default <log>_map.png)")
+    p.add_argument("--trajectory", default=None, metavar="OUT.txt", help="TUM trajectory with the log's stamps")
+    p.add_argument("--resolution", type=float, default=0.05, help="map cell size in m (default 0.05)")
     p.add_argument("--no-loops", action="store_true", help="scan-matching odometry only (no loop closure)")
-    p.add_argument("--no-track-scans", action="store_true",
-                   help="match keyframes only, placing the scans in between by odometry (about 3x faster; "
-                        "fails when odometry lags the laser, e.g. fr079)")
-    p.add_argument("--refine-scans", action="store_true",
-                   help="also match every non-keyframe scan by ICP (slower; better short relations)")
     p.add_argument("--relations", default=None, help="relations file (default: <log>.relations if present)")
     p.add_argument("--path", action="store_true", help="draw the estimated trajectory on the map")
+    p.add_argument("--data-dir", default=None, help="directory holding the dataset folders (overrides SLAM2D_DATA)")
     p.add_argument("--json", default=None, metavar="OUT", help="write the result record as JSON")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a LidarSlamConfig field (repeatable), e.g. --set keyframe_distance_m=0.05 "
-                        "--set icp.trim_fraction=0.9")
+                   help="override a LidarSLAMConfig field (repeatable), e.g. --set keyframe_distance_m=0.2")
     add_force_argument(p)
     p.set_defaults(func=cmd)
 
 
-def resolve_dataset(name: str) -> Path:
-    """A dataset name or a path to the .clf(.bz2) file."""
-    import os
+def load_laser_log(name: str, data_dir: str | None = None, max_steps: int | None = None,
+                   max_time_s: float | None = None) -> Log:
+    """A CARMEN log (Radish name or path) as a ``Log``; its metadata keep the file path and original stamps."""
+    from slam2d.io.carmen import read_carmen, resolve_carmen
 
-    if name in DATASETS:
-        root = Path(os.environ.get("SLAM2D_DATA", Path.cwd().parent / "shared" / "datasets"))
-        p = root / "radish-laser-logs" / f"{DATASETS[name]}.clf.bz2"
-        if not p.exists():
-            raise FileNotFoundError(f"dataset {name!r} not found at {p} (set SLAM2D_DATA to the datasets folder)")
-        return p
-    p = Path(name)
-    if not p.exists():
-        raise FileNotFoundError(f"{name}: not a known dataset ({', '.join(sorted(DATASETS))}) nor an existing file")
-    return p
+    log = read_carmen(resolve_carmen(name, data_dir)).to_log()
+    if max_time_s is not None:
+        max_steps = min(max_steps or log.num_steps, int(np.searchsorted(log.stamps_s, max_time_s, side="right")) - 1)
+    return log.head(max_steps) if max_steps else log
+
+
+def original_stamps(log: Log) -> np.ndarray:
+    """The stamps of poses 0..T as the source wrote them (CARMEN ipc timestamps), else the log's own."""
+    st = log.metadata.get("stamps_original_s")
+    return np.asarray(st[: log.num_steps + 1] if st is not None else log.stamps_s, dtype=np.float64)
+
+
+def write_tum_stamped(path: Path, stamps: np.ndarray, poses: np.ndarray) -> None:
+    """A TUM file whose stamps are written as the shortest text that reads back as the same float (so a CARMEN
+    stamp ``976052896.784509`` stays ``976052896.784509`` and matches the relations files by string too)."""
+    from slam2d.io.tum import poses_to_tum
+
+    rows = poses_to_tum(stamps, poses)
+    with open(path, "w") as f:
+        f.write("# timestamp tx ty tz qx qy qz qw\n")
+        f.writelines(f"{float(r[0])!r} " + " ".join(f"{v:.9g}" for v in r[1:]) + "\n" for r in rows)
+
+
+def laser_outputs(log: Log, trajectory: np.ndarray, record: dict[str, Any], *, trajectory_out: str | None = None,
+                  map_out: str | None = None, resolution_m: float = 0.05, relations: str | None = None,
+                  draw_path: bool = False) -> None:
+    """Write the TUM trajectory / occupancy map PNG and add relation errors (mean +- std, trans and rot) of the
+    estimate and of the logged odometry to ``record`` when a relations file is given or sits beside the log."""
+    from slam2d.eval.relations import read_relations, relation_errors
+    from slam2d.geometry import se2
+    from slam2d.io.carmen import relations_beside
+
+    stamps = original_stamps(log)
+    if trajectory_out:
+        with atomic_path(trajectory_out) as tmp:
+            write_tum_stamped(tmp, stamps, trajectory)
+        record["trajectory_file"] = str(trajectory_out)
+    if map_out:
+        if log.scan_ranges_m is None or log.scan_angles_rad is None or log.scan_step is None:
+            raise ValueError("--map needs a log with lidar scans")
+        from slam2d.maps.occupancy import grid_from_scans
+        from slam2d.viz.maps import save_occupancy_png
+
+        grid = grid_from_scans(trajectory[log.scan_step], log.scan_ranges_m, log.scan_angles_rad,
+                               log.scan_max_range_m, resolution_m=resolution_m)
+        with atomic_path(map_out) as tmp:
+            save_occupancy_png(grid, tmp, trajectory if draw_path else None)
+        record["map"] = str(map_out)
+        record["map_cells"] = f"{grid.shape[1]}x{grid.shape[0]}"
+    rel_path = Path(relations) if relations else None
+    if rel_path is None and "path" in log.metadata:
+        rel_path = relations_beside(str(log.metadata["path"]))
+    if rel_path is None:
+        return
+    rel = read_relations(rel_path)
+    odo = se2.compose_chain(log.initial_pose, log.odometry)
+    for label, poses in (("rel", trajectory), ("odometry_rel", odo)):
+        e = relation_errors(stamps, poses, rel, on_missing="skip").summary()
+        record.update({f"{label}_{k}": v for k, v in e.items() if k in ("trans_mean_m", "trans_std_m",
+                                                                       "rot_mean_deg", "rot_std_deg")})
+    record["relations"] = len(rel)
+    record["relations_used"] = int(len(rel) - e["missing"])
+    record["relations_file"] = str(rel_path)
 
 
 def cmd(args: argparse.Namespace) -> int:
-    import dataclasses
-
-    import numpy as np
-
-    from slam2d.config import with_overrides
-    from slam2d.graph.lidar_slam import LidarSlamConfig, relation_errors, run_lidar_slam
-    from slam2d.io.carmen import read_carmen, read_relations
-    from slam2d.maps.occupancy import (
-        OccupancyConfig,
-        OccupancyGrid,
-        transform_scan_points,
-        wall_thickness_cells,
-    )
-    from slam2d.viz.maps import save_occupancy_png
+    from slam2d.cli.common import check_number, check_outputs, overrides_from, print_table, write_json
+    from slam2d.io.carmen import resolve_carmen
+    from slam2d.lab.runner import run_named
 
     # everything that can be checked is checked before the (minutes of) SLAM
-    path = resolve_dataset(args.dataset)
-    if not path.is_file():  # a directory, /dev/zero, a FIFO: never read line by line without end
-        raise IsADirectoryError(21, "is a directory, not a CARMEN log", str(path)) if path.is_dir() else \
-            ValueError(f"{path}: not a regular file (a CARMEN log is a .clf or .clf.bz2 file)")
     check_number("--resolution", args.resolution, low=0.01, high=100.0)
-    name = Path(path).name.split(".")[0]
-    out = Path(args.out or f"{name}_map.png")
-    rel_path = Path(args.relations) if args.relations else Path(str(path).replace(".clf.bz2", ".relations")
-                                                                     .replace(".clf", ".relations"))
-    check_outputs(args, [path, rel_path if rel_path.exists() else None], [("--out", out), ("--json", args.json)])
-    cfg = with_overrides(LidarSlamConfig(loop_closure=not args.no_loops, refine_scans=args.refine_scans,
-                                         track_scans=not args.no_track_scans),
-                         overrides_from(args))
-    use_rel = rel_path.exists() and rel_path != path
-    relations = read_relations(rel_path) if use_rel else None
-    t0 = time.perf_counter()
-    log = read_carmen(path)
-    print(log.summary())
-    if log.num_scans < 2:
-        raise ValueError(f"{path}: fewer than 2 usable scans")
-    t1 = time.perf_counter()
-    res = run_lidar_slam(log.poses, log.ranges_m, log.angles_rad, log.max_range_m, cfg)
-    t2 = time.perf_counter()
-    # the map: keyframe scans at their estimated poses (the scans in between add little but cost 5x the time);
-    # no-return beams clear nothing (through windows and doors they would paint fans of free space outside)
-    lim = cfg.max_range_m
-    sample = np.vstack([transform_scan_points(p, r, log.angles_rad, lim)
-                        for p, r in zip(res.keyframe_poses, log.ranges_m[res.keyframes], strict=True)])
-    grid = OccupancyGrid.around(np.vstack([sample, res.poses[:, :2]]), 1.0,
-                                OccupancyConfig(resolution_m=args.resolution, free_range_cap_m=0.0))
-    grid.integrate(res.keyframe_poses, log.ranges_m[res.keyframes], log.angles_rad, log.max_range_m)
-    thick = wall_thickness_cells(grid)
-    t3 = time.perf_counter()
-    record: dict[str, Any] = {
-        "log": str(path), "scans": log.num_scans, "keyframes": len(res.keyframes), "loops": res.loops_accepted,
-        "loops_tried": res.loops_tried, "icp_failures": res.icp_failures, "map": str(out),
-        "map_cells": f"{grid.shape[1]}x{grid.shape[0]}",
-        "wall_cells_median": float(np.median(thick)) if len(thick) else float("nan"),
-        "wall_cells_p90": round(float(np.percentile(thick, 90)), 2) if len(thick) else float("nan"),
-        "read_s": round(t1 - t0, 1), "slam_s": round(t2 - t1, 1), "map_s": round(t3 - t2, 1),
-    }
-    if relations is not None:
-        rs, rel = relations
-        for label, poses in (("odometry", log.poses), ("slam", res.poses)):
-            s = relation_errors(log.stamps_s, poses, rs, rel).summary()
-            record.update({f"{label}_{k}": v for k, v in s.items() if k not in ("relations", "missing")})
-        record["relations"] = len(rs)
-    # both outputs or neither: the map is renamed into place only after the JSON is written
-    with atomic_path(out) as tmp_png:
-        save_occupancy_png(grid, tmp_png, res.poses if args.path else None)
-        if args.json:
-            write_json(args.json, {**record, "config": dataclasses.asdict(cfg)})
-    print_table([record], list(record))
+    source = resolve_carmen(args.dataset, args.data_dir)
+    if Path(source).is_dir():
+        raise IsADirectoryError(21, "is a directory, not a CARMEN log", str(source))
+    if not Path(source).is_file():  # /dev/zero, a FIFO: never read line by line without end
+        raise ValueError(f"{source}: not a regular file (a CARMEN log is a .clf or .clf.bz2 file)")
+    out = args.out or f"{Path(source).name.split('.')[0]}_map.png"
+    check_outputs(args, [source, args.relations], [("--out", out), ("--json", args.json),
+                                                   ("--trajectory", args.trajectory)])
+    log = load_laser_log(args.dataset, args.data_dir)
+    overrides = {f"estimator.{k}": v for k, v in overrides_from(args).items()}
+    if args.no_loops:
+        overrides["estimator.loop_closure"] = "false"
+    result, record = run_named("lidar", None, overrides=overrides, log=log, progress=None)
+    laser_outputs(log, result.trajectory, record, trajectory_out=args.trajectory, map_out=out,
+                  resolution_m=args.resolution, relations=args.relations,
+                  draw_path=args.path)
+    cols = ["scenario", "steps", "rel_trans_mean_m", "rel_trans_std_m", "rel_rot_mean_deg", "rel_rot_std_deg",
+            "odometry_rel_trans_mean_m", "step_ms_mean", "step_ms_p99", "map"]
+    print_table([record], [c for c in cols if c in record])
+    if args.json:
+        write_json(args.json, record)
     return 0

@@ -15,8 +15,10 @@ from slam2d.cli.common import (
     print_table,
     write_json,
 )
+from slam2d.cli.lidar import laser_outputs, load_laser_log
 from slam2d.config import parse_set_args
 from slam2d.eval.gps import gps_ate
+from slam2d.io.carmen import is_carmen_source
 from slam2d.io.datasets import DATASETS, load_dataset
 from slam2d.lab.registry import estimator_names
 from slam2d.lab.runner import run_named
@@ -25,7 +27,8 @@ from slam2d.sim.scenarios import SCENARIOS
 
 COLUMNS = ["estimator", "scenario", "robot", "seed", "steps", "ate_rmse_m", "gps_ate_rmse_m", "rpe_trans_rmse_m",
            "rpe_rot_rmse_rad", "final_pose_error_m", "landmarks_estimated", "step_ms_mean", "assoc_precision",
-           "assoc_recall", "loops_accepted", "loops_false"]
+           "assoc_recall", "loops_accepted", "loops_false", "rel_trans_mean_m", "rel_trans_std_m", "rel_rot_mean_deg",
+           "rel_rot_std_deg"]
 
 
 def register(sub: Any) -> None:
@@ -34,7 +37,8 @@ def register(sub: Any) -> None:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--scenario", default=None, help=f"one of: {', '.join(sorted(SCENARIOS))} (default room)")
     src.add_argument("--log", default=None, help="a log saved by 'slam2d simulate'")
-    src.add_argument("--dataset", default=None, help=f"a real dataset: {', '.join(DATASETS)} (see 'slam2d datasets')")
+    src.add_argument("--dataset", default=None, help=f"a real dataset: {', '.join(DATASETS)} (see 'slam2d datasets'), "
+                     "a Radish laser log (aces, intel, fr079, mit-csail) or a path to a CARMEN .clf/.clf.bz2 file")
     p.add_argument("--robot", type=int, default=1, help="MRCLAM robot 1..5 (default 1)")
     p.add_argument("--dataset-path", default=None, metavar="DIR",
                    help="folder in the dataset's format (default: the staged copy under the data directory)")
@@ -47,6 +51,10 @@ def register(sub: Any) -> None:
     p.add_argument("--estimator", default="dead-reckoning", help=f"one of: {', '.join(estimator_names())}")
     p.add_argument("--seed", type=int, default=0, help="seed for the simulation and the estimator (default 0)")
     p.add_argument("--json", default=None, metavar="OUT", help="write the flat result record as JSON")
+    p.add_argument("--trajectory", default=None, metavar="OUT.txt",
+                   help="write the final trajectory as TUM 'stamp x y z qx qy qz qw' (a CARMEN log's own stamps)")
+    p.add_argument("--map", default=None, metavar="OUT.png",
+                   help="write the occupancy map of the final trajectory over the log's lidar scans as PNG")
     p.add_argument("--association", default=None, choices=list(METHODS),
                    help="data association method of the estimator (estimators that associate)")
     p.add_argument("--no-loop-closure", action="store_true",
@@ -75,9 +83,12 @@ def cmd(args: argparse.Namespace) -> int:
     check_number("--seed", args.seed, low=0, high=2**63 - 1)
     check_number("--max-steps", args.max_steps, low=1)
     check_number("--max-time", args.max_time, low=0, low_open=True)
-    check_outputs(args, [args.log, args.dataset_path], [("--json", args.json)])
+    check_outputs(args, [args.log, args.dataset_path], [("--json", args.json), ("--trajectory", args.trajectory),
+                                                         ("--map", args.map)])
     log = Log.load(args.log) if args.log else None
-    if args.dataset:
+    if args.dataset and is_carmen_source(args.dataset):
+        log = load_laser_log(args.dataset, args.data_dir, args.max_steps, args.max_time)
+    elif args.dataset:
         opts = {k: _literal(v) for k, v in parse_set_args(args.dataset_opt).items()}
         log = load_dataset(args.dataset, args.dataset_path, args.robot, data_dir_override=args.data_dir,
                            max_steps=args.max_steps, max_time_s=args.max_time, **opts)
@@ -97,7 +108,23 @@ def cmd(args: argparse.Namespace) -> int:
             record["robot"] = int(log.metadata["robot"])
         if log.gps_step is not None and log.true_poses is None and log.gps_step.size >= 2:
             record["gps_ate_rmse_m"] = gps_ate(result.trajectory, log).rmse_m
+    if args.trajectory or args.map or (log is not None and "stamps_original_s" in log.metadata):
+        laser_outputs(log if log is not None else _simulated(args), result.trajectory, record,
+                      trajectory_out=args.trajectory, map_out=args.map)
     print_table([record], [c for c in COLUMNS if c in record])
     if args.json:
         write_json(args.json, record)
     return 0
+
+
+def _simulated(args: argparse.Namespace) -> Log:
+    """The scenario log ``run_named`` simulated (same seed and overrides: simulation is deterministic)."""
+    from slam2d.config import split_overrides, with_overrides
+    from slam2d.lab.registry import get_spec
+    from slam2d.sim.scenarios import ScenarioConfig
+    from slam2d.sim.simulator import simulate
+
+    rest = {k.split(".", 1)[1] if k.startswith("scenario.") else k: v for k, v in overrides_from(args).items()
+            if not k.startswith("estimator.")}
+    scen, _ = split_overrides(rest, ScenarioConfig, get_spec(args.estimator).config_cls)
+    return simulate(with_overrides(ScenarioConfig(name=args.scenario or "room"), scen), args.seed)

@@ -119,7 +119,29 @@ def _jacobian_rows(theta: float, src: Array) -> tuple[Array, Array]:
     return j, dr
 
 
-def icp(source: ArrayLike, target: ArrayLike, initial: ArrayLike | None = None,
+@dataclass(frozen=True)
+class ICPTarget:
+    """A target prepared once for many alignments (a local map matched by every scan): its finite points (M,2),
+    their KD-tree and, for point-to-line, their normals (M,2)."""
+
+    points: Array
+    tree: cKDTree
+    normals: Array | None
+
+
+def prepare_target(target: ArrayLike, config: ICPConfig | None = None) -> ICPTarget:
+    """Build the KD-tree (and normals for point-to-line) of ``target`` (M,2) once."""
+    cfg = config or ICPConfig()
+    tgt = np.asarray(target, dtype=np.float64).reshape(-1, 2)
+    tgt = tgt[np.all(np.isfinite(tgt), axis=1)]
+    tree = cKDTree(tgt)
+    normals = None
+    if cfg.method == "point-to-line" and len(tgt) >= max(cfg.min_matches, cfg.normal_neighbours):
+        normals = estimate_normals(tgt, cfg.normal_neighbours, tree)
+    return ICPTarget(tgt, tree, normals)
+
+
+def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | None = None,
         config: ICPConfig | None = None) -> ICPResult:
     """Align ``source`` points to ``target`` points; returns ``T_target_source`` (see the module docstring).
 
@@ -129,15 +151,17 @@ def icp(source: ArrayLike, target: ArrayLike, initial: ArrayLike | None = None,
     """
     cfg = config or ICPConfig()
     src = np.asarray(source, dtype=np.float64).reshape(-1, 2)
-    tgt = np.asarray(target, dtype=np.float64).reshape(-1, 2)
+    prep = target if isinstance(target, ICPTarget) else prepare_target(target, cfg)
     src = src[np.all(np.isfinite(src), axis=1)]
-    tgt = tgt[np.all(np.isfinite(tgt), axis=1)]
     t = np.zeros(3) if initial is None else np.asarray(initial, dtype=np.float64).copy()
     fail = ICPResult(t, np.full((3, 3), np.inf), False, 0, 0, float("inf"), 0.0)
-    if len(src) < cfg.min_matches or len(tgt) < max(cfg.min_matches, cfg.normal_neighbours):
+    if len(src) < cfg.min_matches or len(prep.points) < max(cfg.min_matches, cfg.normal_neighbours):
         return fail
-    tree = cKDTree(tgt)
-    normals = estimate_normals(tgt, cfg.normal_neighbours, tree) if cfg.method == "point-to-line" else None
+    tgt, tree, normals = prep.points, prep.tree, prep.normals
+    if cfg.method == "point-to-point":
+        normals = None
+    elif normals is None:
+        normals = estimate_normals(tgt, cfg.normal_neighbours, tree)
 
     def match(tr: Array) -> tuple[NDArray[np.intp], NDArray[np.intp], Array]:
         moved = se2.transform_points(tr, src)

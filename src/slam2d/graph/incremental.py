@@ -34,11 +34,18 @@ class IncrementalConfig:
     """Gauss-Newton iterations per local solve."""
     full_every: int = 500
     """steps between whole-graph solves (one Gauss-Newton iteration each)."""
+    loop_kernel: str | None = None
+    """robust kernel on loop edges (edges between non-consecutive poses), e.g. "cauchy"; None: plain least
+    squares. A wrong loop that slipped through verification then bends the graph less."""
+    loop_kernel_scale: float = 3.0
+    """scale of ``loop_kernel`` in standard deviations (sqrt(chi2))."""
 
     def __post_init__(self) -> None:
         for n in ("window", "iterations", "full_every"):
             if getattr(self, n) < 1:
                 raise ValueError(f"IncrementalConfig.{n} must be >= 1 (got {getattr(self, n)})")
+        if self.loop_kernel_scale <= 0:
+            raise ValueError(f"IncrementalConfig.loop_kernel_scale must be > 0 (got {self.loop_kernel_scale})")
         if self.loop_neighbourhood < 0:
             raise ValueError(f"IncrementalConfig.loop_neighbourhood must be >= 0 (got {self.loop_neighbourhood})")
 
@@ -100,9 +107,27 @@ class IncrementalPoseGraph:
         elif loops.size:
             self._solve_local(t, loops)
 
+    def add_loop(self, i: int, j: int, z: Array, information: Array) -> None:
+        """An extra edge between two existing poses (an on-demand loop closure), followed by a local solve."""
+        t = self.num_poses - 1
+        if not (0 <= i < j <= t):
+            raise ValueError(f"add_loop: need 0 <= i < j <= {t} (got {i}, {j})")
+        self._grow()
+        e = self.num_edges
+        self._ei[e], self._ej[e], self._z[e], self._info[e] = i, j, z, information
+        self._adj[i].append(e)
+        self._adj[j].append(e)
+        self.num_edges += 1
+        self._solve_local(t, np.array([i], dtype=np.int64))
+
     def _graph(self, edges: NDArray[np.int64]) -> FactorGraph:
         g = FactorGraph()
-        g.add_between(self._ei[edges], self._ej[edges], self._z[edges], self._info[edges])
+        c = self.config
+        loop = np.abs(self._ej[edges] - self._ei[edges]) > 1 if c.loop_kernel else np.zeros(len(edges), bool)
+        for sel, kernel in ((edges[~loop], None), (edges[loop], c.loop_kernel)):
+            if len(sel):
+                g.add_between(self._ei[sel], self._ej[sel], self._z[sel], self._info[sel], robust=kernel,
+                              robust_param=c.loop_kernel_scale)
         return g
 
     def _solve_local(self, t: int, loops: NDArray[np.int64]) -> None:
@@ -129,6 +154,10 @@ class IncrementalPoseGraph:
         self._poses[:n] = out.poses
         self.full_solves += 1
         return summary
+
+    def solve_full(self, iterations: int) -> Summary:
+        """Gauss-Newton on the whole graph (``iterations`` at most), from the current estimate."""
+        return self._solve_full(iterations)
 
     def finalize(self) -> Summary:
         """Optimise the whole graph to convergence (Levenberg-Marquardt)."""

@@ -10,9 +10,14 @@ One message per line; the last three fields of a message are ``ipc_timestamp ipc
 * ``ODOM x y theta tv rv accel ipc_ts host logger_ts``.
 
 Other record types (PARAM, SYNC, RAWLASER*, TRUEPOS, NMEA-*...) are counted and reported, never silently dropped.
-A line that is too short or has a non-number where a number belongs is an error naming ``file:line`` (or, with
-``on_error="skip"``, skipped and listed in :attr:`CarmenLog.problems`). Ranges that are NaN, inf, <= 0 or at/beyond
-``max_range_m`` are no-return beams: they are stored as exactly ``max_range_m`` so ``Scan`` consumers ignore them.
+A line that is too short, has a non-number where a number belongs or has a different beam count than the first
+scan is an error naming ``file:line`` (or, with ``on_error="skip"``, skipped and
+listed in :attr:`CarmenLog.problems`). A scan whose timestamp goes backwards is kept in file order and listed
+(see ``CarmenConfig.backwards_stamps``). Ranges that are NaN, inf, <= 0 or at/beyond ``max_range_m`` are no-return
+beams: they are stored as exactly ``max_range_m`` so ``Scan`` consumers ignore them; NaN/inf/negative ones are
+counted (``invalid_beams``) and their lines listed (``invalid_beam_lines``). A scan with no usable beam at all
+(every reading a no-return, or ``FLASER 0``) carries nothing to match: it is always skipped and listed in
+``problems``.
 """
 
 from __future__ import annotations
@@ -48,11 +53,19 @@ class CarmenConfig:
     """what to do with a malformed line: raise a ``LogFormatError`` naming file:line, or skip it and record it."""
     max_lines: int = 0
     """stop after this many lines (0: read everything); for quick looks at big logs."""
+    backwards_stamps: Literal["keep", "skip", "raise"] = "keep"
+    """a scan whose timestamp is older than an earlier scan's: ``keep`` it in file order (listed in
+    ``CarmenLog.backwards_stamps``), ``skip`` it, or ``raise`` (both via ``on_error``'s file:line handling: ``raise``
+    fails unless ``on_error="skip"``). intel.clf has 1612 such scans; its file order is the physical one (odometry
+    path 508 m in file order, 661 m when sorted by time) and its relations name 731 of them, so keep is the default."""
 
     def __post_init__(self) -> None:
         check_positive(self, "max_range_m")
         if self.on_error not in ("raise", "skip"):
             raise ValueError(f"CarmenConfig.on_error must be 'raise' or 'skip' (got {self.on_error!r})")
+        if self.backwards_stamps not in ("keep", "skip", "raise"):
+            raise ValueError(f"CarmenConfig.backwards_stamps must be 'keep', 'skip' or 'raise' "
+                             f"(got {self.backwards_stamps!r})")
         if self.max_lines < 0:
             raise ValueError(f"CarmenConfig.max_lines must be >= 0 (got {self.max_lines})")
 
@@ -66,7 +79,8 @@ class CarmenLog:
     frame; the laser pose for ROBOTLASER1), odom_stamps_s (O,), odom_poses (O,3).
     ``record_counts`` counts every record type seen; ``unknown`` the ones this reader does not use;
     ``invalid_beams`` the number of NaN/inf/non-positive readings replaced by no-return; ``problems`` lists
-    ``file:line: message`` for skipped lines.
+    ``file:line: message`` for skipped lines; ``invalid_beam_lines`` and ``backwards_stamps`` the lines with such
+    beams / with a timestamp older than an earlier scan's (kept).
     """
 
     path: str
@@ -81,6 +95,8 @@ class CarmenLog:
     unknown: dict[str, int] = field(default_factory=dict)
     invalid_beams: int = 0
     problems: tuple[str, ...] = ()
+    invalid_beam_lines: tuple[str, ...] = ()
+    backwards_stamps: tuple[str, ...] = ()
 
     @property
     def num_scans(self) -> int:
@@ -91,19 +107,23 @@ class CarmenLog:
         unk = ", ".join(f"{k}={v}" for k, v in sorted(self.unknown.items())) or "none"
         return (f"{self.path}: {self.num_scans} scans x {self.ranges_m.shape[1] if self.num_scans else 0} beams, "
                 f"{len(self.odom_stamps_s)} ODOM, unknown record types: {unk}, invalid beams: {self.invalid_beams}, "
-                f"skipped lines: {len(self.problems)}")
+                f"skipped lines: {len(self.problems)}, backwards timestamps kept: {len(self.backwards_stamps)}")
 
     def to_log(self) -> Log:
         """A slam2d :class:`Log` with one step per scan: odometry between consecutive scan poses, scan at each step.
 
-        The first scan belongs to pose 0 and is dropped (a ``Log`` holds scans at steps 1..T). No ground truth.
+        Pose 0 is the first scan's pose; its scan is not in the ``Log`` (a ``Log`` holds scans at steps 1..T), so
+        the log has S-1 steps and S poses, pose k taken at scan k. ``stamps_s`` start at 0; the original ipc
+        timestamps of the S poses are ``metadata["stamps_original_s"]`` (exact floats, for trajectory files and the
+        relations). No ground truth.
         """
         if self.num_scans < 2:
             raise LogFormatError(f"{self.path}: need at least 2 scans to build a log (got {self.num_scans})")
         odo = se2.between(self.poses[:-1], self.poses[1:])
         t = odo.shape[0]
         return Log(
-            stamps_s=self.stamps_s - self.stamps_s[0],
+            # never backwards (a scan kept in file order gets the latest stamp so far; dt_s >= 0)
+            stamps_s=np.maximum.accumulate(self.stamps_s) - self.stamps_s[0],
             odometry=odo,
             obs_step=np.zeros(0, dtype=np.int64),
             obs_range_m=np.zeros(0),
@@ -114,13 +134,20 @@ class CarmenLog:
             scan_ranges_m=self.ranges_m[1:],
             scan_angles_rad=self.angles_rad,
             scan_max_range_m=self.max_range_m,
-            metadata={"source": "carmen", "path": self.path, "units": {"length": "m", "angle": "rad", "time": "s"},
-                      "start_stamp_s": float(self.stamps_s[0])},
+            metadata={"source": "carmen", "path": self.path, "dataset": Path(self.path).name.split(".")[0],
+                      "units": {"length": "m", "angle": "rad", "time": "s"},
+                      "start_stamp_s": float(self.stamps_s[0]),
+                      "stamps_original_s": [float(v) for v in self.stamps_s],
+                      "initial_odometry_pose": [float(v) for v in self.poses[0]],
+                      "skipped_lines": len(self.problems), "invalid_beams": self.invalid_beams,
+                      "backwards_stamps": len(self.backwards_stamps)},
         )
 
 
 def flaser_angles(n: int) -> Array:
-    """CARMEN FLASER beam angles: 180 deg field of view from -90 deg. Shapes: -> (n,)."""
+    """CARMEN FLASER beam angles: 180 deg field of view from -90 deg. Shapes: -> (n,) (n = 0: empty)."""
+    if n <= 0:
+        return np.zeros(0)
     if n == 361 or n == 181:
         return np.linspace(-np.pi / 2, np.pi / 2, n)
     return np.asarray(-np.pi / 2 + np.arange(n) * (np.pi / n), dtype=np.float64)
@@ -182,6 +209,10 @@ def read_carmen(path: str | Path, config: CarmenConfig | None = None) -> CarmenL
     oposes: list[list[float]] = []
     angles: Array | None = None
     problems: list[str] = []
+    empty_scans: list[str] = []
+    backwards: list[str] = []
+    latest = -math.inf
+    beam_lines: list[str] = []
 
     def fail(lineno: int, msg: str) -> None:
         full = f"{path}:{lineno}: {msg}"
@@ -217,6 +248,9 @@ def read_carmen(path: str | Path, config: CarmenConfig | None = None) -> CarmenL
                     rest = _floats(tok, base, 12, "poses, velocities and ipc_timestamp")
                     if len(tok) < base + 14:
                         raise _Bad(f"truncated ROBOTLASER1 record: expected {base + 14} fields, got {len(tok)}")
+                    if head[2] > 0 and n < round(head[1] / head[2]):
+                        raise _Bad(f"ROBOTLASER1 record: {n} readings, fewer than the {round(head[1] / head[2])} "
+                                   f"beams of its angle table (fov {head[1]} / resolution {head[2]})")
                     a = np.asarray(head[0] + np.arange(n) * head[2], dtype=np.float64)
                     pose = rest[0:3]
                     ts = rest[11]
@@ -233,6 +267,20 @@ def read_carmen(path: str | Path, config: CarmenConfig | None = None) -> CarmenL
                     continue
                 if not all(math.isfinite(x) for x in pose) or not math.isfinite(ts):
                     raise _Bad(f"{kind} record: non-finite pose or timestamp")
+                if stamps and ts < latest:
+                    msg = f"{kind} record: timestamp {ts:.6f} goes backwards (latest scan so far {latest:.6f})"
+                    if cfg.backwards_stamps != "keep":
+                        raise _Bad(msg)
+                    backwards.append(f"{path}:{lineno}: {msg}; kept in file order")
+                rv = np.asarray(r, dtype=np.float64)
+                usable = np.isfinite(rv) & (rv > 0) & (rv < cfg.max_range_m)
+                if not usable.any():
+                    empty_scans.append(f"{path}:{lineno}: {kind} record with no usable beam ({n} readings, all NaN, "
+                                       f"inf, <= 0 or >= max range {cfg.max_range_m} m): scan skipped")
+                    continue
+                bad_beams = int(np.sum(~np.isfinite(rv) | (rv < 0)))
+                if bad_beams:
+                    beam_lines.append(f"{path}:{lineno}: {bad_beams} NaN/inf/negative ranges read as no return")
                 if angles is None:
                     angles = np.asarray(a, dtype=np.float64)
                 elif len(a) != len(angles) or not np.allclose(a, angles, atol=1e-6):
@@ -242,6 +290,7 @@ def read_carmen(path: str | Path, config: CarmenConfig | None = None) -> CarmenL
                 fail(lineno, str(e))
                 continue
             stamps.append(ts)
+            latest = max(latest, ts)
             ranges.append(r)
             poses.append(pose)
     except (OSError, EOFError) as e:
@@ -264,31 +313,43 @@ def read_carmen(path: str | Path, config: CarmenConfig | None = None) -> CarmenL
         record_counts=dict(counts),
         unknown=unknown,
         invalid_beams=int(invalid.sum()),
-        problems=tuple(problems),
+        problems=tuple(problems + empty_scans),
+        invalid_beam_lines=tuple(beam_lines),
+        backwards_stamps=tuple(backwards),
     )
 
 
-def read_relations(path: str | Path) -> tuple[Array, Array]:
-    """Read a Kümmerle et al. relations file ``t1 t2 x y z roll pitch yaw`` per line.
+#: the staged Radish logs (``<data>/radish-laser-logs/<name>.clf.bz2``, relations beside them)
+RADISH_LOGS = ("aces", "intel", "fr079", "mit-csail")
+_ALIASES = {"intel-laser": "intel"}
 
-    Returns ``(stamps (R,2), rel (R,3) [x, y, yaw])``: the true pose at t2 expressed in the frame of the pose at t1.
-    Raises :class:`LogFormatError` naming file:line on malformed lines.
-    """
-    path = Path(path)
-    st: list[list[float]] = []
-    rel: list[list[float]] = []
-    with open(path, encoding="ascii", errors="replace") as f:
-        for lineno, line in enumerate(f, start=1):
-            tok = line.split()
-            if not tok or tok[0].startswith("#"):
-                continue
-            if len(tok) < 8:
-                raise LogFormatError(f"{path}:{lineno}: relation needs 8 fields (t1 t2 x y z roll pitch yaw), "
-                                     f"got {len(tok)}")
-            try:
-                v = [float(t) for t in tok[:8]]
-            except ValueError:
-                raise LogFormatError(f"{path}:{lineno}: non-numeric field in relation") from None
-            st.append(v[:2])
-            rel.append([v[2], v[3], v[7]])
-    return np.asarray(st, dtype=np.float64).reshape(-1, 2), np.asarray(rel, dtype=np.float64).reshape(-1, 3)
+
+def is_carmen_source(name: str) -> bool:
+    """True for a Radish log name or a path ending in ``.clf`` / ``.clf.bz2``."""
+    return _ALIASES.get(name, name) in RADISH_LOGS or name.endswith((".clf", ".clf.bz2"))
+
+
+def resolve_carmen(name: str, data_dir: str | Path | None = None) -> Path:
+    """The file of a Radish log name (under :func:`slam2d.io.datasets.data_dir`) or an existing ``.clf(.bz2)`` path."""
+    from slam2d.io.datasets import data_dir as default_dir
+
+    key = _ALIASES.get(name, name)
+    if key in RADISH_LOGS:
+        root, why = default_dir(data_dir)
+        p = root / "radish-laser-logs" / f"{key}.clf.bz2"
+        if not p.exists():
+            raise FileNotFoundError(f"dataset {name!r} not found at {p} (data directory from {why}; set SLAM2D_DATA "
+                                    "or --data-dir)")
+        return p
+    p = Path(name)
+    if not p.exists():
+        raise FileNotFoundError(f"{name}: not a known laser log ({', '.join(RADISH_LOGS)}) nor an existing file")
+    return p
+
+
+def relations_beside(path: str | Path) -> Path | None:
+    """``<log>.relations`` next to a ``.clf`` / ``.clf.bz2`` file, if it exists."""
+    p = Path(path)
+    stem = p.name[: -len(".clf.bz2")] if p.name.endswith(".clf.bz2") else p.name.removesuffix(".clf")
+    r = p.with_name(stem + ".relations")
+    return r if r.exists() and r != p else None

@@ -51,6 +51,8 @@ _BUILTIN: dict[str, tuple[str, str, str, str]] = {
                   "FastSLAM 2.0: FastSLAM with the proposal conditioned on the observations"),
     "graph": ("slam2d.graph.online", "GraphSLAMConfig", "GraphSLAM",
               "online graph SLAM with place-recognition loop closures (sparse LM)"),
+    "lidar": ("slam2d.graph.lidar", "LidarSLAMConfig", "LidarSLAM",
+              "lidar SLAM: scan-to-local-map ICP, keyframes, correlative+ICP verified loops, incremental pose graph"),
     "range-only-ekf": ("slam2d.filters.range_only_ekf", "RangeOnlyEKFConfig", "RangeOnlyEKF",
                        "range-only EKF-SLAM: beacons placed by delayed trilateration, gated scalar range updates"),
     "range-only-graph": ("slam2d.graph.range_only", "RangeOnlyGraphConfig", "RangeOnlyGraph",

@@ -267,3 +267,27 @@ def wall_thickness_cells(grid: OccupancyGrid, min_component_cells: int = 20) -> 
     dist = ndimage.distance_transform_edt(occ)
     skel = np.asarray(skeletonize(keep), dtype=bool)
     return np.asarray(2.0 * dist[skel] - 1.0, dtype=np.float64)
+
+
+def grid_from_scans(poses: ArrayLike, ranges: ArrayLike, angles: ArrayLike, max_range: float, *,
+                    resolution_m: float = 0.05, min_motion_m: float = 0.3, min_turn_rad: float = 0.25) -> OccupancyGrid:
+    """The occupancy map of any trajectory over a scan log: the scans taken after the pose moved ``min_motion_m``
+    or turned ``min_turn_rad`` since the last one used (the scans in between add little and cost time), at their
+    poses; no-return beams clear nothing (through windows and doors they would paint fans of free space outside).
+
+    Shapes: poses (S,3) one per scan, ranges (S,B), angles (B,).
+    """
+    p = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+    r = np.asarray(ranges, dtype=np.float64)
+    if len(p) == 0 or len(p) != len(r):
+        raise ValueError(f"grid_from_scans: need one pose per scan (got {len(p)} poses, {len(r)} scans)")
+    keep = [0]
+    for k in range(1, len(p)):  # a scalar test per scan, like keyframe selection
+        d = se2.between(p[keep[-1]], p[k])
+        if np.hypot(d[0], d[1]) >= min_motion_m or abs(d[2]) >= min_turn_rad:
+            keep.append(k)
+    sel = np.asarray(keep)
+    pts = np.vstack([transform_scan_points(p[k], r[k], angles, max_range) for k in sel.tolist()] + [p[:, :2]])
+    grid = OccupancyGrid.around(pts, 1.0, OccupancyConfig(resolution_m=resolution_m, free_range_cap_m=0.0))
+    grid.integrate(p[sel], r[sel], angles, max_range)
+    return grid

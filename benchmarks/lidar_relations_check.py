@@ -1,0 +1,72 @@
+"""Do the relations files agree with the raw laser data? A check that uses no SLAM estimate.
+
+    python benchmarks/lidar_relations_check.py
+
+For every relation (short ones, |t2 - t1| < 2 s, where the two scans see nearly the same scene, and long ones,
+which close loops) the raw scan at t2 is moved into the frame of the scan at t1 by the relation itself, and we
+measure how well the two raw scans then overlap: the fraction of t2's points within 10 cm of a t1 point
+(``inliers``). A correct relation gives the overlap of two scans taken at nearly the same place; a wrong one does
+not. For the short ones the same is measured with the logged odometry's relative pose instead of the relation (a
+reference that drifts but is locally decent). Also counted: relations whose (x, y) equals the logged odometry's
+relative translation to 5 decimals (a relation copied from odometry).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from slam2d.eval.relations import match_stamps, read_relations
+from slam2d.geometry import se2
+from slam2d.io.carmen import read_carmen, relations_beside, resolve_carmen
+
+
+def points(r: np.ndarray, a: np.ndarray, max_range: float = 25.0) -> np.ndarray:
+    ok = np.isfinite(r) & (r > 0.05) & (r < max_range)
+    return np.stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])], axis=-1)
+
+
+def inliers(p1: np.ndarray, p2: np.ndarray, t: np.ndarray, tol: float = 0.1) -> float:
+    d, _ = cKDTree(p1).query(se2.transform_points(t, p2), distance_upper_bound=tol)
+    return float(np.mean(np.isfinite(d))) if len(d) else 0.0
+
+
+def check(name: str) -> None:
+    path = resolve_carmen(name)
+    c = read_carmen(path)
+    rel_path = relations_beside(path)
+    if rel_path is None:
+        print(f"{name}: no relations file")
+        return
+    rel = read_relations(rel_path)
+    idx, ok = match_stamps(c.stamps_s, rel.stamps, 1e-3)
+    short = ok.all(axis=1) & (np.abs(rel.stamps[:, 1] - rel.stamps[:, 0]) < 2.0)
+    i1, i2 = idx[short, 0], idx[short, 1]
+    odo = se2.between(c.poses[i1], c.poses[i2])
+    z = rel.rel[short]
+    copied = np.all(np.abs(np.round(z[:, :2], 5) - np.round(odo[:, :2], 5)) < 1.5e-5, axis=1)
+    by_rel = np.array([inliers(points(c.ranges_m[a], c.angles_rad), points(c.ranges_m[b], c.angles_rad), t)
+                       for a, b, t in zip(i1, i2, z, strict=True)])
+    by_odo = np.array([inliers(points(c.ranges_m[a], c.angles_rad), points(c.ranges_m[b], c.angles_rad), t)
+                       for a, b, t in zip(i1, i2, odo, strict=True)])
+    yaw_gap = np.degrees(np.abs(np.angle(np.exp(1j * (z[:, 2] - odo[:, 2])))))
+    print(f"{name:10s} short relations {short.sum():4d} | (x,y) = odometry: {copied.sum():4d} | "
+          f"scan inliers under the relation: median {np.median(by_rel):.2f} (p10 {np.percentile(by_rel, 10):.2f}) | "
+          f"under odometry: median {np.median(by_odo):.2f} | relation worse than odometry by > 0.2: "
+          f"{int(np.sum(by_rel < by_odo - 0.2))}")
+    long = ok.all(axis=1) & ~short
+    by_long = np.array([inliers(points(c.ranges_m[a], c.angles_rad), points(c.ranges_m[b], c.angles_rad), t)
+                        for a, b, t in zip(idx[long, 0], idx[long, 1], rel.rel[long], strict=True)])
+    if len(by_long):
+        print(f"{'':10s} long relations {long.sum():4d}: scan inliers under the relation median "
+              f"{np.median(by_long):.2f} (p10 {np.percentile(by_long, 10):.2f}); "
+              f"below 0.3: {int(np.sum(by_long < 0.3))}")
+    if copied.any():
+        print(f"{'':10s} copied ones: inliers under the relation median {np.median(by_rel[copied]):.2f}, under "
+              f"odometry {np.median(by_odo[copied]):.2f}; |yaw(relation) - yaw(odometry)| median "
+              f"{np.median(yaw_gap[copied]):.2f} deg (others: {np.median(yaw_gap[~copied]):.2f} deg)")
+
+
+if __name__ == "__main__":
+    for n in ("aces", "intel", "fr079", "mit-csail"):
+        check(n)

@@ -1,0 +1,88 @@
+"""The lidar estimator (``--estimator lidar``): contract, simulated room vs dead reckoning, determinism, loops."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slam2d.estimator import EstimatorStateError, SupportsLoopClosure
+from slam2d.frontend.correlative import CorrelativeConfig, correlative_match
+from slam2d.geometry import se2
+from slam2d.graph.lidar import LidarSLAM, LidarSLAMConfig
+from slam2d.lab.registry import make_estimator
+from slam2d.lab.runner import run
+from slam2d.sim import simulate
+
+
+def test_contract_order_and_registry() -> None:
+    est = make_estimator("lidar")
+    assert isinstance(est, LidarSLAM) and isinstance(est, SupportsLoopClosure)
+    with pytest.raises(EstimatorStateError):
+        est.estimate()
+    log = simulate("room", seed=1, steps=5)
+    run(est, log, rng=np.random.default_rng(0), progress=False)
+    with pytest.raises(EstimatorStateError):
+        est.step(log.step(1))
+    with pytest.raises(ValueError, match="keyframe_distance_m"):
+        LidarSLAMConfig(keyframe_distance_m=0)
+
+
+def test_beats_dead_reckoning_on_the_simulated_room_and_is_deterministic() -> None:
+    log = simulate("room", seed=3, steps=200)
+    assert log.true_poses is not None
+    res = [run(make_estimator(n), log, rng=np.random.default_rng(0), progress=False)
+           for n in ("dead-reckoning", "lidar", "lidar")]
+    dr, a, b = (r.metrics["ate_rmse_m"] for r in res)
+    assert a < 0.25 * dr and a < 0.1
+    assert np.array_equal(res[1].trajectory, res[2].trajectory)
+    assert len(res[1].trajectory) == log.num_steps + 1
+
+
+def test_occupancy_map_of_the_room_matches_its_walls() -> None:
+    from slam2d.maps.occupancy import compare_with_walls
+
+    log = simulate("room", seed=3, steps=120)
+    est = LidarSLAM()
+    run(est, log, rng=np.random.default_rng(0), progress=False)
+    grid = est.occupancy_grid(0.1)
+    assert log.walls is not None
+    # the estimate starts at the true initial pose, so the grid is in the world frame
+    acc = compare_with_walls(grid, log.walls, tolerance_cells=2)
+    assert acc.occupied_precision > 0.9 and acc.occupied_recall > 0.8
+
+
+def test_correlative_match_finds_an_offset_exactly_and_flags_a_repeated_pattern(rng: np.random.Generator) -> None:
+    # an L-shaped corner: unique alignment
+    t = np.linspace(0, 4, 80)
+    corner = np.vstack([np.stack([t, 0 * t], -1), np.stack([0 * t, t], -1)])
+    true = np.array([0.35, -0.2, 0.1])
+    src = se2.inverse_transform_points(true, corner) + rng.normal(0, 0.005, corner.shape)
+    m = correlative_match(src, corner, np.zeros(3))
+    assert np.allclose(m.transform[:2], true[:2], atol=0.051) and abs(m.transform[2] - true[2]) < 0.011
+    assert m.score > 0.8 and m.ambiguity < 0.8
+    # a long wall: every shift along it fits as well -> ambiguous
+    wall = np.stack([np.linspace(-10, 10, 400), np.zeros(400)], -1)
+    m = correlative_match(wall[150:250] + [0.3, 0.0], wall, np.zeros(3), CorrelativeConfig(window_xy_m=1.0))
+    assert m.ambiguity > 0.95
+
+
+@pytest.mark.slow
+def test_no_false_loops_among_identical_warehouse_aisles() -> None:
+    """A CI-sized version of the benchmark's 10-seed count: a drive long enough to come back through the aisles
+    (from step ~830 on), so loop candidates are really verified, and none of the accepted ones is false."""
+    from slam2d.lab.runner import run_named
+
+    res, rec = run_named("lidar", "warehouse", seed=0, overrides={"steps": 1000}, progress=False)
+    d = res.final.diagnostics
+    assert d.loops_accepted + d.loops_rejected > 0  # candidates were verified
+    assert rec["loops_false"] == 0
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="known (issue 16): warehouse seed 2 closes 2 false loops between identical "
+                                       "aisles farther apart than the verification window")
+def test_no_false_loops_on_warehouse_seed_2() -> None:
+    from slam2d.lab.runner import run_named
+
+    _, rec = run_named("lidar", "warehouse", seed=2, overrides={"steps": 1200}, progress=False)
+    assert rec["loops_false"] == 0
