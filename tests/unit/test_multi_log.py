@@ -52,7 +52,8 @@ def write_multi(folder: Path, robots=(1, 2), duration: float = 10.0, offset_s: d
         v = 0.1 + 0.03 * r * np.sin(0.3 * (t_cmd - t0))
         w = 0.3 * np.sin(0.5 * r * (t_cmd - t0))
         (folder / f"Robot{r}_Odometry.dat").write_text(
-            HEADER + "".join(f"{t - ODOMETRY_DELAY_S:.3f} {a:.17g} {b:.17g}\n" for t, a, b in zip(t_cmd, v, w, strict=True)))
+            HEADER + "".join(f"{t - ODOMETRY_DELAY_S:.3f} {a:.17g} {b:.17g}\n"
+                             for t, a, b in zip(t_cmd, v, w, strict=True)))
         t_ref, gt = _truth(t_cmd, v, w, STARTS[r])
         gts[r] = (t_ref, gt)
         sel = np.arange(0, t_ref.size, 10)  # 100 Hz ground truth
