@@ -10,14 +10,14 @@ can use them. Ground truth, as in ``Log``, is never handed to an estimator by th
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from slam2d.log import Log
+from slam2d.log import Log, Step
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -58,7 +58,7 @@ class RobotSightings:
         z = np.zeros(0, dtype=np.int64)
         return RobotSightings(z, z.copy(), z.copy(), np.zeros(0), np.zeros(0))
 
-    def subset(self, mask: NDArray[np.bool_] | IntArray) -> RobotSightings:
+    def subset(self, mask: NDArray[np.bool_] | IntArray | slice) -> RobotSightings:
         return RobotSightings(self.step[mask], self.observer[mask], self.observed[mask], self.range_m[mask],
                               self.bearing_rad[mask])
 
@@ -66,6 +66,16 @@ class RobotSightings:
     def z(self) -> Array:
         """(S, 2) array of [range, bearing]."""
         return np.stack([self.range_m, self.bearing_rad], axis=-1)
+
+
+@dataclass(frozen=True)
+class MultiStep:
+    """Everything a multi-robot estimator may see at step ``index``: each robot's :class:`Step` (in the order of
+    ``MultiRobotLog.robots``) and the robot-robot sightings taken at that instant."""
+
+    index: int
+    steps: tuple[Step, ...]
+    sightings: RobotSightings
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,6 +127,16 @@ class MultiRobotLog:
         if robot not in self.robots:
             raise KeyError(f"robot {robot} not in this log (robots {self.robots})")
         return self.logs[self.robots.index(robot)]
+
+    def step(self, index: int) -> MultiStep:
+        """The estimator-facing record of step ``index`` (1..T)."""
+        starts = np.searchsorted(self.sightings.step, [index, index + 1])
+        return MultiStep(index, tuple(log.step(index) for log in self.logs),
+                         self.sightings.subset(slice(int(starts[0]), int(starts[1]))))
+
+    def __iter__(self) -> Iterator[MultiStep]:
+        for i in range(1, self.num_steps + 1):
+            yield self.step(i)
 
     def head(self, steps: int) -> MultiRobotLog:
         """The first ``steps`` steps of every robot, and the sightings up to then (a new MultiRobotLog)."""
