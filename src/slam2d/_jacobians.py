@@ -76,6 +76,8 @@ PAIRS: tuple[tuple[str, str, str, tuple[str, ...], tuple[int, ...], dict[str, An
     (_FAC, "range_error", "range_error_jacobians", ("pose", "point"), (), {"z": (2.0,)}),
     (_FAC, "position_error", "position_error_jacobians", ("pose",), (), {"z": (1.0, -2.0)}),
     (_FAC, "point_prior_error", "point_prior_error_jacobians", ("point",), (), {"z": (1.0, -2.0)}),
+    (_FAC, "pose_range_bearing_error", "pose_range_bearing_error_jacobians", ("pose", "pose"), (1,),
+     {"z": (3.0, 3.1)}),
 )
 
 

@@ -16,14 +16,14 @@ EXPECTED = {
                               "range_bearing_inverse", "bearing_only", "range_only", "absolute_position"},
     "slam2d.models.floor_markers": {"marker_in_robot"},
     "slam2d.graph.factors": {f"{k}_error" for k in ("between", "prior", "point", "range_bearing", "bearing", "range",
-                                                    "position", "point_prior")},
+                                                    "position", "point_prior", "pose_range_bearing")},
 }
 EXPECTED_NAMES = {f"{m}.{f}" for m, fs in EXPECTED.items() for f in fs}
 
 
 def test_registry_is_the_expected_explicit_set():
     names = [p.name for p in _jacobians.registry()]
-    assert len(names) == len(set(names)) == 28
+    assert len(names) == len(set(names)) == 29
     assert set(names) == EXPECTED_NAMES
 
 

@@ -20,6 +20,7 @@ from slam2d.config import parse_set_args
 from slam2d.eval.gps import gps_ate
 from slam2d.io.carmen import is_carmen_source
 from slam2d.io.datasets import DATASETS, load_dataset
+from slam2d.lab.multi_robot import MULTI_ESTIMATORS, run_multi, table_rows
 from slam2d.lab.registry import estimator_names
 from slam2d.lab.runner import run_named
 from slam2d.log import Log
@@ -39,7 +40,10 @@ def register(sub: Any) -> None:
     src.add_argument("--log", default=None, help="a log saved by 'slam2d simulate'")
     src.add_argument("--dataset", default=None, help=f"a real dataset: {', '.join(DATASETS)} (see 'slam2d datasets'), "
                      "a Radish laser log (aces, intel, fr079, mit-csail) or a path to a CARMEN .clf/.clf.bz2 file")
-    p.add_argument("--robot", type=int, default=1, help="MRCLAM robot 1..5 (default 1)")
+    p.add_argument("--robot", type=_robot, default=1,
+                   help="MRCLAM robot 1..5 (default 1), or 'all': every robot on one clock (--estimator multi-graph)")
+    p.add_argument("--unknown-starts", action="store_true",
+                   help="multi-graph: robots start in their own frames, merged from common evidence")
     p.add_argument("--dataset-path", default=None, metavar="DIR",
                    help="folder in the dataset's format (default: the staged copy under the data directory)")
     p.add_argument("--data-dir", default=None, help="directory holding the dataset folders (overrides SLAM2D_DATA)")
@@ -48,7 +52,8 @@ def register(sub: Any) -> None:
     p.add_argument("--dataset-opt", action="append", default=[], metavar="KEY=VALUE",
                    help="a loader option (repeatable), e.g. dt_s=0.2 or others=keep (mrclam), max_range_m=30 "
                         "(victoria-park)")
-    p.add_argument("--estimator", default="dead-reckoning", help=f"one of: {', '.join(estimator_names())}")
+    p.add_argument("--estimator", default="dead-reckoning",
+                   help=f"one of: {', '.join(estimator_names())}; with --robot all: {', '.join(MULTI_ESTIMATORS)}")
     p.add_argument("--seed", type=int, default=0, help="seed for the simulation and the estimator (default 0)")
     p.add_argument("--json", default=None, metavar="OUT", help="write the flat result record as JSON")
     p.add_argument("--trajectory", default=None, metavar="OUT.txt",
@@ -62,6 +67,16 @@ def register(sub: Any) -> None:
     add_set_argument(p)
     add_force_argument(p)
     p.set_defaults(func=cmd)
+
+
+def _robot(text: str) -> int | str:
+    """--robot: an integer or 'all'."""
+    if text == "all":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a robot number or 'all', got {text!r}") from None
 
 
 def _literal(text: str) -> Any:
@@ -85,6 +100,8 @@ def cmd(args: argparse.Namespace) -> int:
     check_number("--max-time", args.max_time, low=0, low_open=True)
     check_outputs(args, [args.log, args.dataset_path], [("--json", args.json), ("--trajectory", args.trajectory),
                                                          ("--map", args.map)])
+    if args.robot == "all" or args.estimator in MULTI_ESTIMATORS or args.unknown_starts:
+        return _cmd_multi(args)
     log = Log.load(args.log) if args.log else None
     if args.dataset and is_carmen_source(args.dataset):
         log = load_laser_log(args.dataset, args.data_dir, args.max_steps, args.max_time)
@@ -128,3 +145,25 @@ def _simulated(args: argparse.Namespace) -> Log:
             if not k.startswith("estimator.")}
     scen, _ = split_overrides(rest, ScenarioConfig, get_spec(args.estimator).config_cls)
     return simulate(with_overrides(ScenarioConfig(name=args.scenario or "room"), scen), args.seed)
+
+
+def _cmd_multi(args: argparse.Namespace) -> int:
+    """``--robot all --estimator multi-graph``: the joint graph over every robot (slam2d.lab.multi_robot)."""
+    if args.robot != "all" or args.estimator not in MULTI_ESTIMATORS or not args.dataset:
+        raise ValueError(f"multi-robot runs need --dataset mrclam --robot all --estimator "
+                         f"{'|'.join(MULTI_ESTIMATORS)} (got --robot {args.robot} --estimator {args.estimator})")
+    if args.overrides or args.no_loop_closure:
+        raise ValueError("--set and --no-loop-closure do not apply to multi-robot runs")
+    opts = {k: _literal(v) for k, v in parse_set_args(args.dataset_opt).items()}
+    log = load_dataset(args.dataset, args.dataset_path, robot="all", data_dir_override=args.data_dir,
+                       max_steps=args.max_steps, max_time_s=args.max_time, **opts)
+    res = run_multi(log, estimator=args.estimator, unknown_starts=args.unknown_starts,
+                    association=args.association or "known", seed=args.seed)
+    record = {**res.metrics, "dataset": str(log.metadata.get("dataset", args.dataset)),
+              "dataset_path": str(log.metadata.get("dataset_path", ""))}
+    print_table(table_rows(record), ["robot", "group", "ate_rmse_m", "start_error_m", "start_error_rad",
+                                     "map_rmse_m", "landmarks"])
+    if args.json:
+        write_json(args.json, record)
+    return 0
+

@@ -15,6 +15,7 @@ Error conventions (all are "prediction minus measurement" in the measurement spa
 * ``point`` (pose -> landmark in the pose frame; g2o EDGE_SE2_XY, iSAM LANDMARK): ``e = R(th)^T (l - t) - z``.
 * ``range_bearing``: ``e = [|l - t| - r, wrap(atan2(l - t) - th - b)]``; ``bearing``/``range`` take one row.
 * ``position`` (absolute position / GPS of a pose): ``e = t - z``.
+* ``pose_range_bearing`` (robot i sights robot j): ``e = [|t_j - t_i| - r, wrap(atan2(t_j - t_i) - th_i - b)]``.
 * ``point_prior``: ``e = l - z``.
 
 Each residual has a public ``*_error`` function and a ``*_error_jacobians`` sibling listed in
@@ -119,6 +120,18 @@ def eval_range_bearing(x: Array, lm: Array, z: Array) -> tuple[Array, Array]:
     return e, J
 
 
+def eval_pose_range_bearing(xi: Array, xj: Array, z: Array) -> tuple[Array, Array]:
+    """Range and bearing from pose i to the POSITION of pose j (one robot sighting another; j's heading is not
+    observed). Shapes: (3,N),(3,N),(2,N) -> (2,N),(2,6,N)."""
+    dx, dy, q, r, b = _rb_parts(xi, xj[:2])
+    e = np.stack([r - z[0], wrap_angle(b - z[1])])
+    J = np.zeros((2, 6, xi.shape[1]))
+    J[0, 0], J[0, 1] = -dx / r, -dy / r
+    J[1, 0], J[1, 1], J[1, 2] = dy / q, -dx / q, -1.0
+    J[:, 3:5] = -J[:, :2]
+    return e, J
+
+
 def eval_bearing(x: Array, lm: Array, z: Array) -> tuple[Array, Array]:
     """Bearing only. Shapes: (3,N),(2,N),(1,N) -> (1,N),(1,5,N)."""
     dx, dy, q, _, b = _rb_parts(x, lm)
@@ -188,6 +201,7 @@ KINDS: dict[str, FactorKind] = {
         FactorKind("range", ("pose", "point"), 1, 1, (), eval_range),
         FactorKind("position", ("pose",), 2, 2, (), eval_position),
         FactorKind("point_prior", ("point",), 2, 2, (), eval_point_prior),
+        FactorKind("pose_range_bearing", ("pose", "pose"), 2, 2, (1,), eval_pose_range_bearing),
     ]
 }
 
@@ -287,5 +301,15 @@ def point_prior_error(lm: ArrayLike, z: ArrayLike) -> Array:
 def point_prior_error_jacobians(lm: ArrayLike, z: ArrayLike) -> tuple[Array, ...]:
     """``(de/dl (2,2),)``."""
     return _split("point_prior", _one("point_prior", (lm,), z)[1])
+
+
+def pose_range_bearing_error(xi: ArrayLike, xj: ArrayLike, z: ArrayLike) -> Array:
+    """Robot-robot range-bearing error. Shapes: (3,),(3,),(2,) -> (2,)."""
+    return _one("pose_range_bearing", (xi, xj), z)[0][0]
+
+
+def pose_range_bearing_error_jacobians(xi: ArrayLike, xj: ArrayLike, z: ArrayLike) -> tuple[Array, ...]:
+    """``(de/dxi (2,3), de/dxj (2,3))``."""
+    return _split("pose_range_bearing", _one("pose_range_bearing", (xi, xj), z)[1])
 
 

@@ -230,6 +230,11 @@ class FactorGraph:
         """Landmark position prior: z (N,2)."""
         self._add("point_prior", [point_keys], z, information, robust, robust_param)
 
+    def add_pose_range_bearing(self, i_keys: ArrayLike, j_keys: ArrayLike, z: ArrayLike, information: ArrayLike, *,
+                               robust: str | None = None, robust_param: float = 1.0) -> None:
+        """Range (m) and bearing (rad) from pose i to the position of pose j (robot-robot sightings): z (N,2)."""
+        self._add("pose_range_bearing", [i_keys, j_keys], z, information, robust, robust_param)
+
     # --------------------------------------------------------------------------------------------- reading
     def block(self, kind: str) -> FactorBlock:
         """All factors of one type, concatenated (cached until the next add)."""

@@ -18,16 +18,17 @@ import os
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, overload
 
 from slam2d.io.datasets._common import DatasetFormatError
-from slam2d.io.datasets.mrclam import load_mrclam
+from slam2d.io.datasets.mrclam import load_mrclam, load_mrclam_all
 from slam2d.io.datasets.plaza import load_plaza
 from slam2d.io.datasets.victoria import load_victoria
 from slam2d.log import Log
+from slam2d.multi_log import MultiRobotLog
 
 __all__ = ["DATASETS", "DatasetFormatError", "DatasetInfo", "data_dir", "dataset_status", "load_dataset",
-           "load_mrclam", "load_plaza", "load_victoria", "loader_options"]
+           "load_mrclam", "load_mrclam_all", "load_plaza", "load_victoria", "loader_options"]
 
 
 @dataclass(frozen=True)
@@ -121,13 +122,24 @@ def loader_options(name: str) -> list[str]:
     return [p.name for p in inspect.signature(fn).parameters.values() if p.kind is inspect.Parameter.KEYWORD_ONLY]
 
 
-def load_dataset(name: str, path: str | Path | None = None, robot: int = 1, *, data_dir_override: str | Path | None
-                 = None, **opts: Any) -> Log:
-    """Load dataset ``name`` as a :class:`Log`.
+@overload
+def load_dataset(name: str, path: str | Path | None = None, robot: int = 1, *,
+                 data_dir_override: str | Path | None = None, **opts: Any) -> Log: ...
+
+
+@overload
+def load_dataset(name: str, path: str | Path | None = None, *, robot: Literal["all"],
+                 data_dir_override: str | Path | None = None, **opts: Any) -> MultiRobotLog: ...
+
+
+def load_dataset(name: str, path: str | Path | None = None, robot: int | str = 1, *,
+                 data_dir_override: str | Path | None = None, **opts: Any) -> Log | MultiRobotLog:
+    """Load dataset ``name`` as a :class:`Log` (or, with ``robot="all"``, a :class:`MultiRobotLog`).
 
     ``path`` points the loader at any folder in that dataset's format (e.g. another ``MRCLAM_DatasetN``); by default
-    the staged copy under :func:`data_dir` is used. ``robot`` selects the MRCLAM robot (1..5; other datasets have one
-    vehicle and reject robot != 1). ``opts`` go to the loader (see :func:`loader_options`), e.g. ``max_steps``,
+    the staged copy under :func:`data_dir` is used. ``robot`` selects the MRCLAM robot (1..5, or ``"all"`` for every
+    robot on one clock with their sightings of each other, :func:`load_mrclam_all`; other datasets have one vehicle
+    and reject robot != 1). ``opts`` go to the loader (see :func:`loader_options`), e.g. ``max_steps``,
     ``max_time_s``; an unknown option raises ValueError listing the valid ones.
     """
     info = resolve_name(name)
@@ -135,10 +147,14 @@ def load_dataset(name: str, path: str | Path | None = None, robot: int = 1, *, d
     bad = sorted(set(opts) - set(valid))
     if bad:
         raise ValueError(f"unknown option(s) {bad} for dataset {info.name!r}; valid options: {valid}")
+    if isinstance(robot, str) and robot != "all":
+        raise ValueError(f"robot must be an integer or 'all' (got {robot!r})")
     if not info.has_robots and robot != 1:
         raise ValueError(f"dataset {info.name!r} has a single vehicle; --robot/robot applies to mrclam only")
     folder = Path(path) if path is not None else data_dir(data_dir_override)[0] / info.folder
     if not folder.is_dir():
         raise DatasetFormatError(f"{folder}: dataset folder for {info.name!r} not found (set SLAM2D_DATA, "
                                  "--data-dir or --dataset-path)")
-    return info.loader(folder, robot, **opts)
+    if robot == "all":
+        return load_mrclam_all(folder, **opts)
+    return info.loader(folder, int(robot), **opts)
