@@ -6,7 +6,6 @@ from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import stats
 
 Array = NDArray[np.float64]
 
@@ -37,6 +36,8 @@ def chi2_gate(probability: float, dof: int) -> float:
         raise ValueError(f"probability must be in (0, 1), got {probability}")
     if dof < 1:
         raise ValueError(f"dof must be >= 1, got {dof}")
+    from scipy import stats  # imported here: scipy.stats costs ~1 s, and most users of geometry never need it
+
     return float(stats.chi2.ppf(probability, dof))
 
 
