@@ -38,7 +38,7 @@ chromium:
 	@command -v chromium >/dev/null || (apt-get update && apt-get install -y chromium) || echo "chromium could not be installed: browser tests will be skipped"
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check src tests $(wildcard benchmarks)
+	$(VENV)/bin/ruff check src tests $(wildcard benchmarks tools)
 	$(VENV)/bin/lint-imports
 
 typecheck: $(STAMP)

@@ -161,3 +161,21 @@ def test_to_log_keeps_the_original_stamps(tmp_path: Path) -> None:
     assert log.metadata["stamps_original_s"] == [1.05, 1.15, 976052896.784509]
     assert log.num_steps == 2 and log.scan_ranges_m is not None and log.scan_ranges_m.shape == (2, 4)
     assert log.metadata["dataset"] == "log"
+
+
+def test_bz2_bomb_and_endless_lines_stop_at_the_caps(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # 64 MB of zeros compress to ~50 bytes; the decompressed-size cap must stop the read, not the memory
+    bomb = tmp_path / "bomb.clf.bz2"
+    comp = bz2.BZ2Compressor(9)
+    parts = [comp.compress(b"\0" * (1 << 20)) for _ in range(64)]
+    bomb.write_bytes(b"".join(parts) + comp.flush())
+    assert bomb.stat().st_size < 10_000
+    monkeypatch.setenv("SLAM2D_MAX_FILE_MB", "8")
+    with pytest.raises(LogFormatError, match=r"bomb\.clf\.bz2.*(larger than 8 MB|line longer)"):
+        read_carmen(bomb)
+    monkeypatch.setenv("SLAM2D_MAX_FILE_MB", "2048")
+    monkeypatch.setenv("SLAM2D_MAX_LINE_CHARS", "1000")
+    long_line = tmp_path / "long.clf"
+    long_line.write_text("FLASER 1 1.0 0 0 0 0 0 0 1.0 h 1.0\n" + "ODOM " + "1 " * 5000 + "\n")
+    with pytest.raises(LogFormatError, match=r"long\.clf:2: line longer than 1000"):
+        read_carmen(long_line)

@@ -20,6 +20,7 @@ from hypothesis import strategies as st
 from test_datasets_io import write_mrclam, write_plaza, write_victoria
 
 from slam2d.io import GraphFormatError, read_graph
+from slam2d.io.carmen import read_carmen
 from slam2d.io.datasets import DatasetFormatError, load_mrclam, load_plaza, load_victoria
 from slam2d.io.datasets._common import read_table
 from slam2d.io.tum import read_tum
@@ -264,3 +265,29 @@ def test_dev_zero_is_refused_by_every_text_reader():
         read_table("/dev/zero", ("a",))
     with pytest.raises(LogFormatError, match="/dev/zero"):
         Log.load("/dev/zero")
+    with pytest.raises(LogFormatError, match="/dev/zero"):
+        read_carmen("/dev/zero")
+
+
+@st.composite
+def carmen_line(draw: st.DrawFn) -> str:
+    kind = draw(st.sampled_from(["FLASER", "ROBOTLASER1", "ODOM", "PARAM", "#", "FLASER"]))
+    n = draw(st.integers(-1, 4))
+    head = [str(n)] if kind == "FLASER" else [draw(NUMBERS) for _ in range(8)] + [str(n)]
+    body = [draw(st.one_of(st.just("1.5"), NUMBERS)) for _ in range(draw(st.integers(0, 14)))]
+    return " ".join([kind, *head, *body])
+
+
+@FUZZ
+@given(lines=st.lists(carmen_line(), max_size=10), raw=st.binary(max_size=40), compress=st.booleans())
+def test_carmen_reader_raises_only_log_format_error(lines, raw, compress, tmp_path_factory):
+    import bz2
+    data = "\n".join(lines).encode() + (raw if len(lines) % 3 == 0 else b"")
+    p = tmp_path_factory.mktemp("c") / ("f.clf.bz2" if compress else "f.clf")
+    p.write_bytes(bz2.compress(data) if compress and len(lines) % 2 == 0 else data)
+    try:
+        log = read_carmen(p)
+        assert np.all(np.isfinite(log.poses)) and np.all(np.isfinite(log.stamps_s))
+        log.to_log()
+    except LogFormatError as e:
+        assert str(p) in str(e)

@@ -9,7 +9,8 @@ Defaults: 2048 MB per file and 1,000,000 characters per line; raise them with ``
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import BinaryIO
 
 CHUNK = 1 << 20
 MAX_FILE_ENV = "SLAM2D_MAX_FILE_MB"
@@ -39,10 +40,12 @@ def limits() -> tuple[int, int]:
 
 def iter_lines(path: str | os.PathLike[str], error: type[Exception] = ValueError, *, encoding: str = "utf-8",
                errors: str = "replace", max_bytes: int | None = None, max_line: int | None = None,
-               ) -> Iterator[str]:
+               opener: Callable[[str], BinaryIO] | None = None) -> Iterator[str]:
     """Lines of a text file (without line ends), read in 1 MB chunks. Raises ``error`` naming the file when it is
     larger than ``max_bytes`` and ``file:line`` when a line is longer than ``max_line`` characters; with
-    ``errors="strict"`` a byte sequence that is not ``encoding`` raises ``error`` naming ``file:line``."""
+    ``errors="strict"`` a byte sequence that is not ``encoding`` raises ``error`` naming ``file:line``.
+    ``opener`` (e.g. ``bz2.open``) reads a compressed file: the caps then count decompressed bytes, so a
+    decompression bomb stops within one chunk past the cap."""
     name = os.fspath(path)
     cap_bytes, cap_line = limits()
     max_bytes = cap_bytes if max_bytes is None else max_bytes
@@ -50,7 +53,7 @@ def iter_lines(path: str | os.PathLike[str], error: type[Exception] = ValueError
     total = 0
     lineno = 0
     pending = b""
-    with open(path, "rb") as fh:
+    with (open(name, "rb") if opener is None else opener(name)) as fh:
         while True:
             chunk = fh.read(CHUNK)
             total += len(chunk)

@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 
 from slam2d.config import check_positive
 from slam2d.geometry import se2
+from slam2d.io import bounded
 from slam2d.log import Log, LogFormatError
 
 Array = NDArray[np.float64]
@@ -154,12 +155,9 @@ def flaser_angles(n: int) -> Array:
 
 
 def _open_lines(path: Path) -> Iterator[str]:
-    if path.suffix == ".bz2":
-        with bz2.open(path, "rt", encoding="ascii", errors="replace") as f:
-            yield from f
-    else:
-        with open(path, encoding="ascii", errors="replace") as f:
-            yield from f
+    # bounded: file size (decompressed for .bz2) and line length are capped, so a bz2 bomb or /dev/zero fails fast
+    opener = (lambda name: bz2.open(name, "rb")) if path.suffix == ".bz2" else None
+    yield from bounded.iter_lines(path, LogFormatError, encoding="ascii", errors="replace", opener=opener)
 
 
 class _Bad(Exception):
