@@ -118,6 +118,19 @@ CASES: list[tuple[str, str, str]] = [
     ("demo", "demo --out {file}", "folder"),
     ("lab", "lab --port 0", "--port"),
     ("lab", "lab --port 70000", "--port"),
+    # map
+    ("map", "map info {dir}", "directory"),
+    ("map", "map info {d}/missing.db", "missing.db"),
+    ("map", "map info {file}", "afile"),
+    ("map", "map load {g2o}", "g.g2o"),
+    ("map", "map load /dev/zero", "/dev/zero"),
+    ("map", "map save --scenario room --out {dir}", "directory"),
+    ("map", "map save --scenario room --out {file}/m.db", "not a directory"),
+    ("map", "map save --scenario room --out /dev/full", "/dev/full"),
+    ("map", "map save --scenario room --out {file}", "not a slam2d map"),
+    ("map", "map save --scenario room --out {d}/m.db --resolution 0", "resolution"),
+    ("map", "map save --scenario room --out {d}/m.db --resolution nan", "resolution"),
+    ("map", "map save --scenario nowhere --out {d}/m.db", "nowhere"),
 ]
 
 
@@ -235,3 +248,10 @@ def test_optimize_dev_zero_stays_small(tmp_path):
     assert code == 2 and "/dev/zero" in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
     assert peak_kb / 1024 < 300, peak_kb
     assert not (tmp_path / "o.g2o").exists()
+
+
+def test_every_subcommand_is_in_the_table():
+    from slam2d.cli.main import build_parser
+
+    sub = next(a for a in build_parser()._actions if a.__class__.__name__ == "_SubParsersAction")
+    assert set(sub.choices) <= {c[0] for c in CASES}, set(sub.choices) - {c[0] for c in CASES}

@@ -203,7 +203,8 @@ class MapStore:
         the new one is complete."""
         path = Path(path)
         if not path.parent.is_dir():
-            raise MapFormatError(f"{path}: cannot write a map there (directory {path.parent} does not exist)")
+            why = "is not a directory" if path.parent.exists() else "does not exist"
+            raise MapFormatError(f"{path}: cannot write a map there ({path.parent} {why})")
         if path.exists():
             MapStore._check_replaceable(path, snapshot.world_id, replace_other_world)
         tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
