@@ -51,16 +51,16 @@ def test_dask_sweep_survives_a_killed_worker(tmp_path):
          "--dashboard-address", "127.0.0.1:0", "--scheduler-file", str(sched_file)],
         stdout=logs[0], stderr=subprocess.STDOUT, cwd=tmp_path)]
     try:
-        _wait_for(lambda: sched_file.exists() and sched_file.stat().st_size > 0, 60, "the scheduler")
+        _wait_for(lambda: sched_file.exists() and sched_file.stat().st_size > 0, 300, "the scheduler")
         address = json.loads(sched_file.read_text())["address"]
         for i in (1, 2):
             procs.append(subprocess.Popen(
                 [PY, "-m", "distributed.cli.dask_worker", address, "--host", "127.0.0.1",
                  "--dashboard-address", "127.0.0.1:0", "--nthreads", "1", "--no-nanny", "--name", f"w{i}",
-                 "--local-directory", str(tmp_path / f"dw{i}"), "--death-timeout", "60"],
+                 "--local-directory", str(tmp_path / f"dw{i}"), "--death-timeout", "300"],
                 stdout=logs[i], stderr=subprocess.STDOUT, cwd=tmp_path))
-        with Client(address, timeout=30) as c:
-            c.wait_for_workers(2, timeout=60)
+        with Client(address, timeout=300) as c:
+            c.wait_for_workers(2, timeout=300)
         # every listener of the cluster is on loopback (STACK.md pitfall C2)
         for p in procs:
             for conn in psutil.Process(p.pid).net_connections(kind="tcp"):
@@ -118,9 +118,9 @@ def test_sigint_then_rerun_finishes_only_the_missing_runs(tmp_path, capsys, monk
     env = {**os.environ, "DASK_SCHEDULER_ADDRESS": ""}
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     try:
-        _wait_for(lambda: store.exists() and len(store.read_bytes().splitlines()) >= 4, 60, "the first records")
+        _wait_for(lambda: store.exists() and len(store.read_bytes().splitlines()) >= 4, 600, "the first records")
         proc.send_signal(signal.SIGINT)
-        stdout, stderr = proc.communicate(timeout=60)
+        stdout, stderr = proc.communicate(timeout=300)
     finally:
         _stop([proc])
     assert proc.returncode == 130, (stdout, stderr)
