@@ -7,7 +7,7 @@ under load (a timing assert, a too-short wait) or only after another test (share
 
 Run ``i`` uses ``--random-order-seed=i`` (pytest-random-order), so a failing order can be replayed. Each run's
 seed, exit code, wall time, load average and pytest summary line go to ``--out`` (one JSON object per line) and
-to stdout as a table.
+to stdout as a table; the full pytest output of run ``i`` to ``suite_under_load.run<i>.txt`` beside it.
 """
 
 from __future__ import annotations
@@ -46,6 +46,7 @@ def main() -> int:
                                    f"--random-order-seed={seed}", *a.pytest_args], cwd=ROOT, capture_output=True,
                                   text=True)
             took = time.monotonic() - t0
+            (a.out.parent / f"suite_under_load.run{i + 1}.txt").write_text(proc.stdout + proc.stderr)
             lines = [ln for ln in proc.stdout.splitlines() if ln.strip()]
             summary = next((ln for ln in reversed(lines) if re.search(r"\d+ (passed|failed)", ln)), lines[-1:])
             failed = [ln for ln in lines if ln.startswith(("FAILED", "ERROR"))]
