@@ -62,6 +62,11 @@ class JointConfig:
     correlative: CorrelativeConfig = field(default_factory=lambda: CorrelativeConfig(window_xy_m=0.6,
                                                                                      window_theta_rad=0.2))
     """the correlative search around the current relative estimate."""
+    sliding_loops: bool = True
+    """accept loops whose alignment slides along one axis, with no information along it (see ``_verify``)."""
+    sliding_sigma_m: float = 5.0
+    """standard deviation a sliding loop keeps along its free axis (m): ICP's own covariance there is far too
+    confident (measured: 4 cm for a 25 cm error)."""
     solve_every: int = 50
     """keyframes between whole-graph solves when no loop arrived."""
     loop_solve_gap: int = 10
@@ -73,6 +78,15 @@ class JointConfig:
     """side of a map tile (m)."""
     tile_resolution_m: float = 0.2
     """cell of a tile's hit-count raster (m)."""
+
+
+def free_axis(info: Array, sigma_m: float) -> Array:
+    """``info`` with its weakest translation direction (the slide axis) replaced by a standard deviation of
+    ``sigma_m``: the information along that axis, and its coupling to the others, removed."""
+    w, v = np.linalg.eigh(info[:2, :2])
+    axis = np.array([v[0, 0], v[1, 0], 0.0])
+    p = np.eye(3) - np.outer(axis, axis)
+    return np.asarray(p @ info @ p + np.outer(axis, axis) / sigma_m**2, dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -199,22 +213,34 @@ class JointGraph:
         return se2.inverse_transform_points(self.poses[c], np.vstack(parts))
 
     def _verify(self, c: int, n: int, stamp: float) -> LoopRow | None:
+        """A verified loop T_c_n with its information, or None.
+
+        Two kinds pass. A unique match: the correlative search finds one clearly best alignment and ICP refines it
+        (every gate of the lidar estimator). A sliding match: the place scores as well but slides along an axis (an
+        aisle's length, which the lidar cannot see the end of); ICP from the current estimate then fixes what the
+        scans do fix (across the aisle, the heading) and its covariance leaves the axis free, so the loop carries
+        no information along it instead of a guess."""
         lc = self.lidar
         pts, target = self.points[n], self._local_map(c)
         guess = se2.between(self.poses[c], self.poses[n])
         cm = correlative_match(pts, target, guess, self.config.correlative)
-        if cm.score < lc.loop_min_score or cm.ambiguity > lc.loop_max_ambiguity:
+        if cm.score < lc.loop_min_score:
             return None
-        res = icp(pts, target, initial=cm.transform, config=lc.loop_icp)
+        unique = cm.ambiguity <= lc.loop_max_ambiguity
+        if not unique and not self.config.sliding_loops:
+            return None
+        res = icp(pts, target, initial=cm.transform if unique else guess, config=lc.loop_icp)
         if not (res.converged and res.fitness >= lc.loop_min_fitness and res.rmse_m <= lc.loop_max_rmse_m
-                and np.all(np.isfinite(res.covariance))
-                and np.sqrt(np.linalg.eigvalsh(res.covariance[:2, :2])[-1]) <= lc.loop_max_sigma_m):
+                and np.all(np.isfinite(res.covariance))):
             return None
         floor = np.diag([lc.min_sigma_xy_m**2, lc.min_sigma_xy_m**2, lc.min_sigma_theta_rad**2])
         info = np.linalg.inv(res.covariance + floor)
-        e = se2.local(res.transform, cm.transform)
-        if float(e @ info @ e) > lc.loop_chi2:
-            return None
+        if unique:
+            e = se2.local(res.transform, cm.transform)
+            if float(e @ info @ e) > lc.loop_chi2:
+                return None
+        else:
+            info = free_axis(info, self.config.sliding_sigma_m)
         return LoopRow(int(self.node_drone[c]), int(self.node_kf[c]), int(self.node_drone[n]), int(self.node_kf[n]),
                        res.transform, info, stamp)
 
