@@ -23,7 +23,6 @@ import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -73,7 +72,7 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     for k in range(args.drones):
         cmd = [sys.executable, "-m", "slam2d", "drone", "--server", ep, "--drone", str(k), "--scenario",
                args.scenario, "--minutes", str(args.minutes), "--seed", str(args.seed), "--json",
-               str(work / f"drone{k}.json")]
+               str(work / f"drone{k}.json"), "--rate", str(args.rate)]
         if k == args.cut_drone:
             cmd += ["--blackout", f"{args.cut_at}:{args.cut_seconds}"]
         drones.append(subprocess.Popen(cmd, stdout=open(work / f"drone{k}.log", "wb"),
@@ -158,6 +157,8 @@ def main() -> None:
     ap.add_argument("--minutes", type=float, default=30.0, help="simulated minutes per drone")
     ap.add_argument("--scenario", default="warehouse")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--rate", type=float, default=4.0,
+                    help="drones fly this many simulated seconds per wall second (0: as fast as they compute)")
     ap.add_argument("--kill-after", type=float, default=30.0, help="wall seconds before kill -9 of the server")
     ap.add_argument("--down-seconds", type=float, default=5.0, help="wall seconds the server stays dead")
     ap.add_argument("--cut-drone", type=int, default=1, help="the drone cut off from the server (-1: none)")
@@ -170,15 +171,17 @@ def main() -> None:
     ap.add_argument("--out", required=True, help="JSON output file")
     args = ap.parse_args()
     result: dict[str, Any] = {"args": vars(args)}
-    with tempfile.TemporaryDirectory(prefix="fleet-bench-") as tmp:
-        work = Path(tmp)
-        if not args.skip_network:
-            result["network"] = network_run(args, work)
-            print(json.dumps(result["network"], indent=1, default=str), flush=True)
-        if args.scaling:
-            result["scaling"] = scaling([int(s) for s in args.scaling.split(",")], args.scaling_minutes,
-                                        args.seed, work)
-            print(json.dumps(result["scaling"], indent=1), flush=True)
+    work = Path(args.out + ".work")  # server/drone logs and records, kept
+    work.mkdir(parents=True, exist_ok=True)
+    for old in work.glob("*"):
+        old.unlink()
+    if not args.skip_network:
+        result["network"] = network_run(args, work)
+        print(json.dumps(result["network"], indent=1, default=str), flush=True)
+    if args.scaling:
+        result["scaling"] = scaling([int(s) for s in args.scaling.split(",")], args.scaling_minutes,
+                                    args.seed, work)
+        print(json.dumps(result["scaling"], indent=1), flush=True)
     Path(args.out).write_text(json.dumps(result, indent=1, default=str) + "\n")
 
 

@@ -40,6 +40,7 @@ Array = NDArray[np.float64]
 #: information of a keyframe's odometry edge and of the drone's own loops (its front end does not export them)
 EDGE_SIGMA = (0.03, 0.03, 0.01)
 LOOP_SIGMA = (0.05, 0.05, 0.015)
+MAX_TIMEOUT_S = 30.0
 
 
 class DroneError(ValueError):
@@ -58,7 +59,8 @@ class DroneConfig:
     send_every_s: float = 1.0
     """simulated seconds between deltas."""
     ack_timeout_s: float = 3.0
-    """wall seconds without an answer to the oldest unacknowledged message before reconnecting."""
+    """wall seconds without an answer to the oldest unacknowledged message before reconnecting (doubled after
+    each silent reconnect, up to 30 s; back to this after any answer)."""
     window: int = 16
     """deltas in flight at most."""
     rate: float = 0.0
@@ -141,6 +143,7 @@ class Drone:
         self.deltas = 0
         self._driver: Any = None
         self.acked_max = 0
+        self.timeout_s = cfg.ack_timeout_s
         self.lost_acked = 0
 
     # ------------------------------------------------------------------ transport
@@ -187,8 +190,10 @@ class Drone:
                 self.in_flight += 1
                 del seq
         waiting = not self.welcomed or self.in_flight > 0
-        if waiting and time.monotonic() - self.waiting_since > self.config.ack_timeout_s:
-            self.log(f"drone {self.drone}: no answer for {self.config.ack_timeout_s} s, reconnecting")
+        if waiting and time.monotonic() - self.waiting_since > self.timeout_s:
+            self.log(f"drone {self.drone}: no answer for {self.timeout_s:.0f} s, reconnecting")
+            # back off: a busy server must not be buried under resends
+            self.timeout_s = min(2 * self.timeout_s, MAX_TIMEOUT_S)
             self._connect()
 
     def deliver(self, data: bytes) -> None:
@@ -200,6 +205,7 @@ class Drone:
             return
         kind = msg["type"]
         self.waiting_since = time.monotonic()
+        self.timeout_s = self.config.ack_timeout_s
         if kind == "welcome":
             acked = int(msg["acked_seq"])
             if acked < self.acked_max:  # the server forgot a delta it acknowledged: must never happen
