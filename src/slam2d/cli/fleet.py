@@ -20,6 +20,8 @@ def register(sub: Any) -> None:
     p.add_argument("--db", required=True, metavar="MAP.db", help="the server's SQLite file (created if missing)")
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=5555, help="TCP port (default 5555; 0: any free port, printed)")
+    p.add_argument("--durable", action="store_true",
+                   help="fsync every commit (survives a power cut, not only a crash of the server; slower)")
     p.set_defaults(func=cmd_server)
 
     d = sub.add_parser("drone", help="one simulated drone of the fleet, talking to a map server",
@@ -43,7 +45,7 @@ def cmd_server(args: argparse.Namespace) -> int:
     from slam2d.fleet.server import MapServer
 
     check_number("--port", args.port, low=0, high=65535)
-    server = MapServer(args.db)
+    server = MapServer(args.db, durable=args.durable)
 
     def ready(endpoint: str) -> None:
         print(f"map-server: listening on {endpoint} (db {args.db}, {len(server.drones)} drones, "

@@ -120,6 +120,7 @@ class JointGraph:
         self._last_search: dict[int, int] = {}
         self.solves: list[SolveRecord] = []
         self.tile_version: dict[tuple[int, int], int] = {}
+        self._rasters: dict[tuple[int, int], tuple[int, bytes]] = {}
         self._version = 0
 
     # ------------------------------------------------------------------ building
@@ -288,7 +289,17 @@ class JointGraph:
                 <= radius_m + t]
 
     def tile_raster(self, tile: tuple[int, int], reach_m: float = 12.0) -> bytes:
-        """Hit counts (uint8, saturating) of every keyframe point in ``tile``, zlib-compressed, row-major (y, x)."""
+        """Hit counts (uint8, saturating) of every keyframe point in ``tile``, zlib-compressed, row-major (y, x);
+        computed once per tile version."""
+        version = self.tile_version.get(tile, -1)
+        hit = self._rasters.get(tile)
+        if hit is not None and hit[0] == version:
+            return hit[1]
+        out = self._raster(tile, reach_m)
+        self._rasters[tile] = (version, out)
+        return out
+
+    def _raster(self, tile: tuple[int, int], reach_m: float) -> bytes:
         cfg = self.config
         n = round(cfg.tile_m / cfg.tile_resolution_m)
         lo = np.array(tile, np.float64) * cfg.tile_m

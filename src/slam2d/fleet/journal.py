@@ -5,8 +5,11 @@ keyframes (drone-frame pose, descriptor, compact points) and edges, the sequence
 committed delta, and the inter-robot loop closures the server accepted. The merged poses are not stored: a
 restarted server rebuilds the joint graph from these rows and optimises it again.
 
-``synchronous=FULL``: a commit returns after the WAL is on disk, so a delta the server acknowledged (it acks only
-after the commit) survives ``kill -9`` of the server and a power cut alike.
+A commit is in the WAL file when it returns and the server acknowledges a delta only after its commit, so an
+acknowledged delta survives ``kill -9`` of the server (the process dies, the OS keeps the written file).
+``synchronous=NORMAL`` (WAL fsynced at checkpoints, not per commit): a power cut may lose the last commits;
+``Journal(path, durable=True)`` (``synchronous=FULL``) survives that too, at an fsync per delta (measured 8 ms per
+commit on the loaded test machine, the server's largest cost).
 """
 
 from __future__ import annotations
@@ -67,14 +70,14 @@ class LoopRow:
 class Journal:
     """Open (or create) the fleet journal at ``path``."""
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, *, durable: bool = False) -> None:
         self.path = Path(path)
         if self.path.is_dir():
             raise IsADirectoryError(21, "is a directory, not a map database", str(self.path))
         try:
             self.db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
             self.db.execute("PRAGMA journal_mode=WAL")
-            self.db.execute("PRAGMA synchronous=FULL")
+            self.db.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
             app = self.db.execute("PRAGMA application_id").fetchone()[0]
             ver = self.db.execute("PRAGMA user_version").fetchone()[0]
             tables = self.db.execute("SELECT count(*) FROM sqlite_master").fetchone()[0]

@@ -28,7 +28,7 @@ Array = NDArray[np.float64]
 POSE_MOVED_M = 0.02
 POSE_TURNED_RAD = 0.005
 TILE_RADIUS_M = 12.0
-TILES_PER_ACK = 3
+TILES_PER_ACK = 1
 
 
 @dataclass
@@ -47,8 +47,8 @@ class _DroneState:
 class MapServer:
     """The server's state (journal + joint graph + per-drone bookkeeping); see the module docstring."""
 
-    def __init__(self, db: str | Path, config: JointConfig | None = None) -> None:
-        self.journal = Journal(db)
+    def __init__(self, db: str | Path, config: JointConfig | None = None, *, durable: bool = False) -> None:
+        self.journal = Journal(db, durable=durable)
         self.joint = JointGraph(config)
         self.drones: dict[int, _DroneState] = {}
         self.by_identity: dict[bytes, int] = {}
@@ -131,7 +131,8 @@ class MapServer:
         if d.seq <= st.acked_seq:
             if self.journal.digest(drone, d.seq) != d.digest:
                 raise ProtocolError("replay", f"delta {d.seq} was already committed with different content", d.seq)
-            return self._ack(drone, d.seq, duplicate=True)
+            # a resend: acknowledged again, nothing else (the corrections come with the next new delta)
+            return {"type": "ack", "seq": d.seq, "duplicate": True, "ids": b"", "poses": b"", "tiles": []}
         if d.seq != st.acked_seq + 1:
             raise ProtocolError("out-of-order", f"delta {d.seq} arrived before {st.acked_seq + 1}", d.seq)
         self._check_references(st, d)
