@@ -11,6 +11,7 @@ for a refused message, and a refusal goes to the sending client only.
 from __future__ import annotations
 
 import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -201,9 +202,10 @@ class MapServer:
                 "uptime_s": round(now - self.started, 1)}
 
     # ------------------------------------------------------------------ transport
-    def serve(self, host: str = "127.0.0.1", port: int = 0, *, ready: Any = None) -> None:
-        """Bind a ROUTER socket on tcp://host:port (port 0: any free port) and answer until SIGTERM / SIGINT.
-        ``ready(endpoint)`` is called once bound."""
+    def serve(self, host: str = "127.0.0.1", port: int = 0, *, ready: Any = None,
+              stop_event: threading.Event | None = None) -> None:
+        """Bind a ROUTER socket on tcp://host:port (port 0: any free port) and answer until SIGTERM / SIGINT (in the
+        main thread) or ``stop_event``. ``ready(endpoint)`` is called once bound."""
         import zmq
 
         sock: Any = zmq.Context.instance().socket(zmq.ROUTER)
@@ -218,11 +220,12 @@ class MapServer:
         def _stop(signum: int, frame: Any) -> None:
             stop.append(signum)
 
-        old = {s: signal.signal(s, _stop) for s in (signal.SIGTERM, signal.SIGINT)}
+        main = threading.current_thread() is threading.main_thread()
+        old = {s: signal.signal(s, _stop) for s in (signal.SIGTERM, signal.SIGINT)} if main else {}
         if ready is not None:
             ready(f"tcp://{host}:{port}")
         try:
-            while not stop:
+            while not stop and not (stop_event is not None and stop_event.is_set()):
                 if not sock.poll(200):
                     continue
                 frames = sock.recv_multipart()
