@@ -235,7 +235,7 @@ class JointGraph:
                 and np.all(np.isfinite(res.covariance))):
             return None
         floor = np.diag([lc.min_sigma_xy_m**2, lc.min_sigma_xy_m**2, lc.min_sigma_theta_rad**2])
-        info = np.linalg.inv(res.covariance + floor)
+        info = np.asarray(np.linalg.inv(res.covariance + floor), dtype=np.float64)
         if unique:
             e = se2.local(res.transform, cm.transform)
             if float(e @ info @ e) > lc.loop_chi2:
