@@ -41,7 +41,17 @@ def register(sub: Any) -> None:
     d.set_defaults(func=cmd_drone)
 
 
+def _need_fleet_extra(command: str) -> None:
+    try:
+        import msgpack  # noqa: F401
+        import zmq  # noqa: F401
+    except ImportError as e:
+        raise ValueError(f"slam2d {command} needs pyzmq and msgpack ({e.name} is missing): "
+                         "pip install 'slam2d[fleet]'") from None
+
+
 def cmd_server(args: argparse.Namespace) -> int:
+    _need_fleet_extra("map-server")
     from slam2d.fleet.server import MapServer
 
     check_number("--port", args.port, low=0, high=65535)
@@ -76,6 +86,7 @@ def parse_blackout(text: str | None) -> tuple[float, float] | None:
 
 
 def cmd_drone(args: argparse.Namespace) -> int:
+    _need_fleet_extra("drone")
     from slam2d.fleet.drone import Drone, DroneConfig
     from slam2d.sim.scenarios import SCENARIOS
 

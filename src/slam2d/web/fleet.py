@@ -53,6 +53,9 @@ def register_fleet(app: FastAPI) -> None:
                                           f"got {addr!r}"}, status_code=400)
         try:
             return JSONResponse(await asyncio.to_thread(snapshot, addr))
+        except ImportError as e:
+            return JSONResponse({"error": f"the fleet view needs pyzmq and msgpack ({e.name} is missing): "
+                                          "pip install 'slam2d[fleet]'"}, status_code=503)
         except OSError as e:
             return JSONResponse({"error": f"no map server answers at {addr} ({e.strerror or e}); start one with "
                                           "'slam2d map-server --db MAP.db'"}, status_code=503)
