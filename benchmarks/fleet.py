@@ -7,7 +7,8 @@ one drone cut off for a while; then the server's cost per update as the fleet gr
 Network part (real processes, ZeroMQ on 127.0.0.1): bytes per simulated second per drone (up = drone -> server,
 down = server -> drone; mean and p99 over the flight's seconds), inter-robot loops found, each drone's ATE of its
 keyframes in the merged frame (the server's final poses against the truth, no alignment: every drone starts at a
-surveyed dock), the same for the drone's own front end alone, lost acknowledged deltas (a drone notices when a
+surveyed dock; also after one rigid alignment of the whole merged map), the same for the drone's own front end
+alone, lost acknowledged deltas (a drone notices when a
 restarted server reports fewer committed deltas than it had acknowledged), keyframes committed per drone against
 keyframes flown, and the cut-off drone's record. Scaling part: ``slam2d.fleet.local.run_local`` with 1, 2, 5 and
 10 drones, wall time of every delta's handling (commit, merge, loop search, solve) and of every whole-graph solve:
@@ -101,6 +102,7 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     server.send_signal(signal.SIGTERM)
     server.wait(timeout=30)
     rows = []
+    merged_all, truth_all = [], []
     by_drone = {d["drone"]: d for d in final["drones"]}
     for k in range(args.drones):
         rec = json.loads((work / f"drone{k}.json").read_text())
@@ -108,6 +110,8 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         local = np.asarray(rec["local"], float)
         merged = np.frombuffer(by_drone[k]["poses"], "<f8").reshape(-1, 3)
         up, down = np.asarray(rec["up_bytes"], float), np.asarray(rec["down_bytes"], float)
+        merged_all.append(merged[: len(truth)])
+        truth_all.append(truth)
         rows.append({"drone": k, "keyframes_flown": len(truth), "keyframes_committed": len(merged),
                      "ate_merged_m": merged_ate(truth, merged[: len(truth)]), "ate_own_front_end_m":
                      merged_ate(truth, local), "up_kBps_mean": up.mean() / 1024,
@@ -116,6 +120,17 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
                      "total_kBps_p99": float(np.percentile(up + down, 99)) / 1024, "reconnects": rec["reconnects"],
                      "lost_acked": rec["lost_acked"], "errors": len(rec["errors"]), "tiles": rec["tiles"],
                      "cut_off": k == args.cut_drone})
+    # the whole merged map aligned to the truth by ONE rigid transform (all drones together), for comparison
+    from slam2d.eval.trajectory import align_se2
+    from slam2d.geometry import se2
+
+    est_all = np.vstack([m for m in merged_all]) if merged_all else np.zeros((0, 3))
+    ref_all = np.vstack(truth_all) if truth_all else np.zeros((0, 3))
+    t_align = align_se2(est_all, ref_all)
+    for row, m, t in zip(rows, merged_all, truth_all, strict=True):
+        row["ate_merged_fleet_aligned_m"] = merged_ate(t, se2.compose(np.broadcast_to(t_align, m.shape), m))
+    np.savez(work / "final_poses.npz", **{f"merged{k}": m for k, m in enumerate(merged_all)},
+             **{f"truth{k}": t for k, t in enumerate(truth_all)})
     loops = final["loops"]
     pairs: dict[str, int] = {}
     for lp in loops:
