@@ -37,10 +37,6 @@ def register(sub: Any) -> None:
                    help="simulated seconds per wall second (default 0: as fast as it computes)")
     d.add_argument("--blackout", default=None, metavar="START:SECONDS",
                    help="no link to the server from START for SECONDS (simulated time), e.g. 60:60")
-    d.add_argument("--session", default=None, metavar="TOKEN",
-                   help="the drone's session token (default: a new random one). A drone id belongs to the session "
-                        "that first claimed it in the server's file; a restarted drone process keeps its id only "
-                        "with the same token")
     d.add_argument("--json", default=None, metavar="OUT", help="write the drone's record (bytes, poses) as JSON")
     d.set_defaults(func=cmd_drone)
 
@@ -103,10 +99,7 @@ def cmd_drone(args: argparse.Namespace) -> int:
     server = args.server if "://" in args.server else f"tcp://{args.server}"
     cfg = DroneConfig(scenario=args.scenario, minutes=args.minutes, seed=args.seed, rate=args.rate,
                       blackout=parse_blackout(args.blackout))
-    if args.session is not None and not 1 <= len(args.session) <= 64:
-        raise ValueError(f"--session must be 1..64 characters (got {len(args.session)})")
-    drone = Drone(server, args.drone, cfg, session=args.session,
-                  log=lambda s: print(s, file=sys.stderr, flush=True))
+    drone = Drone(server, args.drone, cfg, log=lambda s: print(s, file=sys.stderr, flush=True))
     result = drone.run()
     up = result.up_bytes
     print(f"drone {args.drone}: {result.steps} steps, {result.keyframes} keyframes, {result.deltas} deltas, "
