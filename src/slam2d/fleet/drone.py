@@ -208,6 +208,9 @@ class Drone:
         self.timeout_s = self.config.ack_timeout_s
         if kind == "welcome":
             acked = int(msg["acked_seq"])
+            if acked > self.seq:  # this session's id was used by another process: its deltas are not ours
+                raise DroneError(f"server {self.server} holds {acked} deltas of drone {self.drone} from this session, "
+                                 f"but this drone made {self.seq}; use a new --drone id")
             if acked < self.acked_max:  # the server forgot a delta it acknowledged: must never happen
                 self.lost_acked += self.acked_max - acked
                 self.errors.append(f"server lost acknowledged deltas {acked + 1}..{self.acked_max}")
