@@ -83,7 +83,7 @@ def test_kill9_of_the_server_loses_no_acknowledged_keyframe(tmp_path: Path,
     procs.append(server)
     port = ep.rsplit(":", 1)[1]
     out = tmp_path / "drone.json"
-    drone = slam2d("drone", "--server", ep, "--drone", "0", "--minutes", "1", "--rate", "5", "--json", str(out),
+    drone = slam2d("drone", "--server", ep, "--drone", "0", "--minutes", "0.6", "--rate", "5", "--json", str(out),
                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     procs.append(drone)
     before = wait_for(lambda: committed(ep, 0) >= 8 and committed(ep, 0), 60, "8 committed keyframes")
@@ -147,7 +147,7 @@ def test_bad_clients_get_errors_and_a_real_drone_is_unaffected(tmp_path: Path,
     server, ep = start_server(db)
     procs.append(server)
     out = tmp_path / "drone.json"
-    drone = slam2d("drone", "--server", ep, "--drone", "0", "--minutes", "0.75", "--rate", "4", "--json", str(out),
+    drone = slam2d("drone", "--server", ep, "--drone", "0", "--minutes", "0.5", "--rate", "4", "--json", str(out),
                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     procs.append(drone)
     wait_for(lambda: committed(ep, 0) > 0, 60, "the drone's first keyframes")
