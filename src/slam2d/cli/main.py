@@ -29,6 +29,7 @@ COMMANDS = [
     "slam2d.cli.exercise",
     "slam2d.cli.lidar",
     "slam2d.cli.map",
+    "slam2d.cli.fleet",
 ]
 
 EXIT_USER = 2

@@ -26,6 +26,7 @@ from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from slam2d.association import METHODS
 from slam2d.lab.registry import estimator_names
+from slam2d.web.fleet import register_fleet
 from slam2d.web.frames import TAGS, encode_frame
 from slam2d.web.pages import PAGE_BY_SLUG, PAGES
 from slam2d.web.params import CommandError
@@ -207,6 +208,7 @@ def create_app(*, allow_origins: frozenset[str] = frozenset(), hosts: frozenset[
     app = FastAPI(title="slam2d lab", docs_url=None, redoc_url=None, openapi_url=None)
     app.add_middleware(OriginHostGuard, allow_origins=allow_origins, hosts=hosts)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    register_fleet(app)
 
     @app.get("/")
     async def index() -> FileResponse:

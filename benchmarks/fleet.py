@@ -1,0 +1,204 @@
+"""The drone fleet over the network: N drone processes, one map-server process, a kill -9 of the server mid-run,
+one drone cut off for a while; then the server's cost per update as the fleet grows (in one process).
+
+    python benchmarks/fleet.py --drones 5 --minutes 30 --out fleet_full.json     # the issue's full run
+    python benchmarks/fleet.py --drones 5 --minutes 4 --out fleet.json           # what fits a loaded 2-core box
+
+Network part (real processes, ZeroMQ on 127.0.0.1): bytes per simulated second per drone (up = drone -> server,
+down = server -> drone; mean and p99 over the flight's seconds), inter-robot loops found, each drone's ATE of its
+keyframes in the merged frame (the server's final poses against the truth, no alignment: every drone starts at a
+surveyed dock; also after one rigid alignment of the whole merged map), the same for the drone's own front end
+alone, lost acknowledged deltas (a drone notices when a
+restarted server reports fewer committed deltas than it had acknowledged), keyframes committed per drone against
+keyframes flown, and the cut-off drone's record. Scaling part: ``slam2d.fleet.local.run_local`` with 1, 2, 5 and
+10 drones, wall time of every delta's handling (commit, merge, loop search, solve) and of every whole-graph solve:
+p50/p99 and the fitted exponent of cost against fleet size.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    src = str(Path(__file__).resolve().parents[1] / "src")
+    env["PYTHONPATH"] = src + os.pathsep + env.get("PYTHONPATH", "")
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")
+    return env
+
+
+def start_server(db: Path, port: int, log: Path) -> subprocess.Popen[bytes]:
+    f = open(log, "ab")
+    p = subprocess.Popen([sys.executable, "-m", "slam2d", "map-server", "--db", str(db), "--port", str(port)],
+                         stdout=f, stderr=subprocess.STDOUT, env=_env())
+    from slam2d.fleet.client import ServerUnavailable, status
+
+    for _ in range(100):
+        try:
+            status(f"tcp://127.0.0.1:{port}", timeout_s=1.0)
+            return p
+        except ServerUnavailable:
+            if p.poll() is not None:
+                raise RuntimeError(f"map-server exited: {log.read_text()[-500:]}") from None
+    raise RuntimeError("map-server did not answer")
+
+
+def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
+    from slam2d.fleet.client import status
+    from slam2d.fleet.local import merged_ate
+
+    port = _free_port()
+    ep = f"tcp://127.0.0.1:{port}"
+    db = work / "fleet.db"
+    server = start_server(db, port, work / "server.log")
+    drones = []
+    for k in range(args.drones):
+        cmd = [sys.executable, "-m", "slam2d", "drone", "--server", ep, "--drone", str(k), "--scenario",
+               args.scenario, "--minutes", str(args.minutes), "--seed", str(args.seed), "--json",
+               str(work / f"drone{k}.json"), "--rate", str(args.rate)]
+        if k == args.cut_drone:
+            cmd += ["--blackout", f"{args.cut_at}:{args.cut_seconds}"]
+        drones.append(subprocess.Popen(cmd, stdout=open(work / f"drone{k}.log", "wb"),
+                                       stderr=subprocess.STDOUT, env=_env()))
+    t0 = time.monotonic()
+    kill: dict[str, Any] = {}
+    while time.monotonic() - t0 < args.kill_after and all(d.poll() is None for d in drones):
+        time.sleep(0.5)
+    before = status(ep)
+    kill["committed_before"] = {d["drone"]: d["keyframes"] for d in before["drones"]}
+    server.send_signal(signal.SIGKILL)
+    server.wait()
+    kill["killed_at_wall_s"] = round(time.monotonic() - t0, 1)
+    time.sleep(args.down_seconds)
+    t_restart = time.monotonic()
+    server = start_server(db, port, work / "server.log")
+    kill["restart_s"] = round(time.monotonic() - t_restart, 2)
+    after = status(ep)
+    kill["committed_after_restart"] = {d["drone"]: d["keyframes"] for d in after["drones"]}
+    kill["none_lost_at_restart"] = all(kill["committed_after_restart"].get(d, 0) >= n
+                                       for d, n in kill["committed_before"].items())
+    for d in drones:
+        d.wait(timeout=args.timeout)
+    wall = time.monotonic() - t0
+    final = status(ep, full=True)
+    server.send_signal(signal.SIGTERM)
+    server.wait(timeout=30)
+    rows = []
+    merged_all, truth_all = [], []
+    by_drone = {d["drone"]: d for d in final["drones"]}
+    for k in range(args.drones):
+        rec = json.loads((work / f"drone{k}.json").read_text())
+        truth = np.asarray(rec["truth"], float)
+        local = np.asarray(rec["local"], float)
+        merged = np.frombuffer(by_drone[k]["poses"], "<f8").reshape(-1, 3)
+        up, down = np.asarray(rec["up_bytes"], float), np.asarray(rec["down_bytes"], float)
+        merged_all.append(merged[: len(truth)])
+        truth_all.append(truth)
+        rows.append({"drone": k, "keyframes_flown": len(truth), "keyframes_committed": len(merged),
+                     "ate_merged_m": merged_ate(truth, merged[: len(truth)]), "ate_own_front_end_m":
+                     merged_ate(truth, local), "up_kBps_mean": up.mean() / 1024,
+                     "up_kBps_p99": float(np.percentile(up, 99)) / 1024, "down_kBps_mean": down.mean() / 1024,
+                     "down_kBps_p99": float(np.percentile(down, 99)) / 1024,
+                     "total_kBps_p99": float(np.percentile(up + down, 99)) / 1024, "reconnects": rec["reconnects"],
+                     "lost_acked": rec["lost_acked"], "errors": len(rec["errors"]), "tiles": rec["tiles"],
+                     "cut_off": k == args.cut_drone})
+    # the whole merged map aligned to the truth by ONE rigid transform (all drones together), for comparison
+    from slam2d.eval.trajectory import align_se2
+    from slam2d.geometry import se2
+
+    est_all = np.vstack([m for m in merged_all]) if merged_all else np.zeros((0, 3))
+    ref_all = np.vstack(truth_all) if truth_all else np.zeros((0, 3))
+    t_align = align_se2(est_all, ref_all)
+    for row, m, t in zip(rows, merged_all, truth_all, strict=True):
+        row["ate_merged_fleet_aligned_m"] = merged_ate(t, se2.compose(np.broadcast_to(t_align, m.shape), m))
+    np.savez(work / "final_poses.npz", **{f"merged{k}": m for k, m in enumerate(merged_all)},
+             **{f"truth{k}": t for k, t in enumerate(truth_all)})
+    loops = final["loops"]
+    pairs: dict[str, int] = {}
+    for lp in loops:
+        key = f"{min(lp['a'][0], lp['b'][0])}-{max(lp['a'][0], lp['b'][0])}"
+        pairs[key] = pairs.get(key, 0) + 1
+    return {"drones": rows, "inter_robot_loops": len(loops), "loops_by_pair": pairs, "kill": kill,
+            "wall_s": round(wall, 1), "server_errors": final["errors"]}
+
+
+def scaling(sizes: list[int], minutes: float, seed: int, work: Path) -> dict[str, Any]:
+    from slam2d.fleet.drone import DroneConfig
+    from slam2d.fleet.local import run_local
+
+    out: dict[str, Any] = {"sizes": sizes, "minutes": minutes, "rows": []}
+    for n in sizes:
+        db = work / f"scale{n}.db"
+        t0 = time.perf_counter()
+        run = run_local(db, n, DroneConfig(minutes=minutes, seed=seed))
+        upd = np.asarray(run.update_s)
+        sol = np.asarray([s.seconds for s in run.server.joint.solves])
+        out["rows"].append({"drones": n, "nodes": len(run.server.joint.poses), "updates": len(upd),
+                            "update_ms_p50": float(np.percentile(upd, 50)) * 1e3,
+                            "update_ms_p99": float(np.percentile(upd, 99)) * 1e3,
+                            "solves": len(sol), "solve_ms_p50": float(np.percentile(sol, 50)) * 1e3 if len(sol) else 0,
+                            "solve_ms_p99": float(np.percentile(sol, 99)) * 1e3 if len(sol) else 0,
+                            "loops": len(run.server.joint.loops), "wall_s": round(time.perf_counter() - t0, 1)})
+        run.server.close()
+    rows = out["rows"]
+    x = np.log([r["drones"] for r in rows])
+    for key in ("update_ms_p50", "update_ms_p99", "solve_ms_p50"):
+        y = np.log([max(r[key], 1e-6) for r in rows])
+        out[f"exponent_{key}"] = float(np.polyfit(x, y, 1)[0]) if len(rows) > 1 else float("nan")
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--drones", type=int, default=5)
+    ap.add_argument("--minutes", type=float, default=30.0, help="simulated minutes per drone")
+    ap.add_argument("--scenario", default="warehouse")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--rate", type=float, default=4.0,
+                    help="drones fly this many simulated seconds per wall second (0: as fast as they compute)")
+    ap.add_argument("--kill-after", type=float, default=30.0, help="wall seconds before kill -9 of the server")
+    ap.add_argument("--down-seconds", type=float, default=5.0, help="wall seconds the server stays dead")
+    ap.add_argument("--cut-drone", type=int, default=1, help="the drone cut off from the server (-1: none)")
+    ap.add_argument("--cut-at", type=float, default=60.0, help="simulated second the cut starts")
+    ap.add_argument("--cut-seconds", type=float, default=60.0, help="simulated seconds without a link")
+    ap.add_argument("--timeout", type=float, default=3600.0, help="wall seconds to wait for the drones")
+    ap.add_argument("--scaling", default="1,2,5,10", help="fleet sizes of the cost part ('' skips it)")
+    ap.add_argument("--scaling-minutes", type=float, default=1.0)
+    ap.add_argument("--skip-network", action="store_true")
+    ap.add_argument("--out", required=True, help="JSON output file")
+    args = ap.parse_args()
+    result: dict[str, Any] = {"args": vars(args)}
+    work = Path(args.out + ".work")  # server/drone logs and records, kept
+    work.mkdir(parents=True, exist_ok=True)
+    for old in work.glob("*"):
+        old.unlink()
+    if not args.skip_network:
+        result["network"] = network_run(args, work)
+        print(json.dumps(result["network"], indent=1, default=str), flush=True)
+    if args.scaling:
+        result["scaling"] = scaling([int(s) for s in args.scaling.split(",")], args.scaling_minutes,
+                                    args.seed, work)
+        print(json.dumps(result["scaling"], indent=1), flush=True)
+    Path(args.out).write_text(json.dumps(result, indent=1, default=str) + "\n")
+
+
+if __name__ == "__main__":
+    main()

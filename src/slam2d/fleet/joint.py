@@ -1,0 +1,317 @@
+"""The server's joint pose graph over every drone's keyframes, its inter-robot loop closures and map tiles.
+
+Frames: every drone starts at a surveyed dock whose pose in the warehouse frame it announces in ``hello`` and runs
+its own front end in that frame, so all drones share one frame up to their drift ("known starts"). The first
+keyframe of each drone gets a prior at the pose the drone reported for it; everything else is relative: the drones'
+own edges (odometry chain, own loops) and the inter-robot loops found here.
+
+Inter-robot loops: a new keyframe is compared with the keyframes of OTHER drones within ``loop_radius_m`` in the
+merged frame (heading within ``loop_max_turn_rad``; nearest first, range-histogram descriptor distance as a
+pre-filter). A candidate is verified on the compact point sets alone: correlative matching against the candidate's
+local map (it and ``loop_map_keyframes`` neighbours on each side) with the score and ambiguity gates of the lidar
+estimator, then point-to-line ICP with its fitness, residual and covariance gates and the chi-square agreement gate
+(defaults taken from :class:`~slam2d.graph.lidar.LidarSLAMConfig`, not tuned here).
+
+Optimisation: Gauss-Newton on the whole joint graph from the current estimate, after every update that brought a
+loop (inter-robot or a drone's own) and every ``solve_every`` keyframes otherwise.
+"""
+
+from __future__ import annotations
+
+import time
+import zlib
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slam2d.fleet.journal import LoopRow
+from slam2d.fleet.protocol import Edge, Keyframe, info_matrix, unpack_descriptor, unpack_points
+from slam2d.frontend.correlative import CorrelativeConfig, correlative_match
+from slam2d.frontend.icp import icp
+from slam2d.geometry import se2
+from slam2d.geometry.angles import wrap_angle
+from slam2d.graph.graph import FactorGraph, Values
+from slam2d.graph.lidar import LidarSLAMConfig
+from slam2d.graph.optimizer import OptimizerConfig, optimize
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class JointConfig:
+    """Settings of the server's joint graph."""
+
+    prior_sigma_xy_m: float = 0.01
+    """standard deviation of each drone's first keyframe about its reported (dock) pose (m)."""
+    prior_sigma_theta_rad: float = 0.002
+    """... and in heading (rad)."""
+    loop_radius_m: float = 3.0
+    """other drones' keyframes within this distance (merged frame) are loop candidates (m)."""
+    loop_max_turn_rad: float = 1.0
+    """... whose heading differs by less than this (the lidar sees a half circle ahead) (rad)."""
+    loop_max_descriptor_l1: float = 0.6
+    """... and whose range histograms differ by less than this (L1 of the beam fractions)."""
+    loop_every: int = 3
+    """search inter-robot loops for every this many keyframes of a drone."""
+    loop_candidates: int = 2
+    """at most this many candidates are verified per search."""
+    loop_map_keyframes: int = 3
+    """a candidate's local map: its keyframe and this many on each side (same drone)."""
+    correlative: CorrelativeConfig = field(default_factory=lambda: CorrelativeConfig(window_xy_m=0.6,
+                                                                                     window_theta_rad=0.2))
+    """the correlative search around the current relative estimate."""
+    sliding_loops: bool = True
+    """accept loops whose alignment slides along one axis, with no information along it (see ``_verify``)."""
+    sliding_sigma_m: float = 5.0
+    """standard deviation a sliding loop keeps along its free axis (m): ICP's own covariance there is far too
+    confident (measured: 4 cm for a 25 cm error)."""
+    solve_every: int = 50
+    """keyframes between whole-graph solves when no loop arrived."""
+    loop_solve_gap: int = 10
+    """a loop waits until this many keyframes arrived since the last solve (bounds the solves per second when
+    drones run faster than real time)."""
+    solve_iterations: int = 3
+    """Gauss-Newton iterations per solve (warm-started from the current estimate)."""
+    tile_m: float = 10.0
+    """side of a map tile (m)."""
+    tile_resolution_m: float = 0.2
+    """cell of a tile's hit-count raster (m)."""
+
+
+def free_axis(info: Array, sigma_m: float) -> Array:
+    """``info`` with its weakest translation direction (the slide axis) replaced by a standard deviation of
+    ``sigma_m``: the information along that axis, and its coupling to the others, removed."""
+    w, v = np.linalg.eigh(info[:2, :2])
+    axis = np.array([v[0, 0], v[1, 0], 0.0])
+    p = np.eye(3) - np.outer(axis, axis)
+    return np.asarray(p @ info @ p + np.outer(axis, axis) / sigma_m**2, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class SolveRecord:
+    nodes: int
+    edges: int
+    seconds: float
+
+
+class JointGraph:
+    """Every committed keyframe as a node (key = arrival order), every edge and accepted loop as a factor."""
+
+    def __init__(self, config: JointConfig | None = None) -> None:
+        self.config = config or JointConfig()
+        self.lidar = LidarSLAMConfig()
+        self.poses = np.zeros((0, 3))
+        self.reported = np.zeros((0, 3))
+        self.node_drone = np.zeros(0, np.int64)
+        self.node_kf = np.zeros(0, np.int64)
+        self.desc = np.zeros((0, 17))
+        self.points: list[Array] = []
+        self.keys: dict[int, list[int]] = {}  # drone -> node keys in keyframe order
+        self.docks: dict[int, Array] = {}
+        self._ei: list[int] = []
+        self._ej: list[int] = []
+        self._z: list[Array] = []
+        self._info: list[Array] = []
+        self.loops: list[LoopRow] = []
+        self._since_solve = 0
+        self._loops_pending = False
+        self._last_search: dict[int, int] = {}
+        self.solves: list[SolveRecord] = []
+        self.tile_version: dict[tuple[int, int], int] = {}
+        self._rasters: dict[tuple[int, int], tuple[int, bytes]] = {}
+        self._version = 0
+
+    # ------------------------------------------------------------------ building
+    def add_drone(self, drone: int, dock: Array) -> None:
+        self.keys.setdefault(drone, [])
+        self.docks[drone] = np.asarray(dock, np.float64)
+
+    def key(self, drone: int, kf: int) -> int:
+        return self.keys[drone][kf]
+
+    def add_keyframes(self, drone: int, kfs: tuple[Keyframe, ...] | list[Keyframe], edges: tuple[Edge, ...] |
+                      list[Edge]) -> list[int]:
+        """Add a drone's keyframes (placed by its own pose change since its newest node) and edges; new keys."""
+        own = self.keys[drone]
+        if not kfs:
+            new: list[int] = []
+        else:
+            reported = np.asarray([k.pose for k in kfs], np.float64).reshape(-1, 3)
+            if own:  # keep the drone's own shape, moved the way the server has moved its newest node
+                last = own[-1]
+                corr = se2.compose(self.poses[last], se2.inverse(self.reported[last]))
+                guess = se2.compose(np.broadcast_to(corr, reported.shape), reported)
+            else:
+                guess = reported
+            first = len(self.poses)
+            new = list(range(first, first + len(kfs)))
+            self.poses = np.vstack([self.poses, guess])
+            self.reported = np.vstack([self.reported, reported])
+            self.node_drone = np.concatenate([self.node_drone, np.full(len(kfs), drone, np.int64)])
+            self.node_kf = np.concatenate([self.node_kf, np.asarray([k.id for k in kfs], np.int64)])
+            self.desc = np.vstack([self.desc, [unpack_descriptor(k.desc) for k in kfs]])
+            self.points.extend(unpack_points(k.pts) for k in kfs)
+            own.extend(new)
+            for key in new:
+                self._touch(key)
+        for e in edges:
+            self._add_factor(own[e.a], own[e.b], e.z, info_matrix(e.info))
+            self._loops_pending |= abs(e.b - e.a) > 1
+        self._since_solve += len(kfs)
+        return new
+
+    def _add_factor(self, i: int, j: int, z: Array, info: Array) -> None:
+        self._ei.append(i)
+        self._ej.append(j)
+        self._z.append(np.asarray(z, np.float64))
+        self._info.append(np.asarray(info, np.float64))
+
+    def add_loop(self, lp: LoopRow) -> None:
+        self.loops.append(lp)
+        self._loops_pending = True
+        self._add_factor(self.key(lp.drone_a, lp.a), self.key(lp.drone_b, lp.b), lp.z, lp.info)
+
+    # ------------------------------------------------------------------ loops
+    def search_loops(self, keys: list[int], stamp: float) -> list[LoopRow]:
+        """Inter-robot loops of the new nodes ``keys`` (verified, not yet added)."""
+        cfg = self.config
+        out: list[LoopRow] = []
+        others_exist = len(self.keys) > 1
+        for n in keys if others_exist else []:
+            d = int(self.node_drone[n])
+            kf = int(self.node_kf[n])
+            if kf - self._last_search.get(d, -cfg.loop_every) < cfg.loop_every or len(self.points[n]) < 20:
+                continue
+            self._last_search[d] = kf
+            diff = self.poses[:, :2] - self.poses[n, :2]
+            dist = np.hypot(diff[:, 0], diff[:, 1])
+            turn = np.abs(wrap_angle(self.poses[:, 2] - self.poses[n, 2]))
+            l1 = np.abs(self.desc - self.desc[n]).sum(axis=1)
+            ok = ((self.node_drone != d) & (dist < cfg.loop_radius_m) & (turn < cfg.loop_max_turn_rad)
+                  & (l1 < cfg.loop_max_descriptor_l1))
+            cand = np.flatnonzero(ok)
+            taken: set[int] = set()
+            for c in cand[np.argsort(dist[cand], kind="stable")].tolist():
+                if int(self.node_drone[c]) in taken:
+                    continue  # one candidate per other drone
+                taken.add(int(self.node_drone[c]))
+                lp = self._verify(c, n, stamp)
+                if lp is not None:
+                    out.append(lp)
+                if len(taken) == cfg.loop_candidates:
+                    break
+        return out
+
+    def _local_map(self, c: int) -> Array:
+        """Points of node ``c`` and its drone neighbours, in ``c``'s frame (merged estimates)."""
+        d, kf = int(self.node_drone[c]), int(self.node_kf[c])
+        own = self.keys[d]
+        m = self.config.loop_map_keyframes
+        parts = [se2.transform_points(self.poses[own[i]], self.points[own[i]])
+                 for i in range(max(0, kf - m), min(len(own), kf + m + 1))]
+        return se2.inverse_transform_points(self.poses[c], np.vstack(parts))
+
+    def _verify(self, c: int, n: int, stamp: float) -> LoopRow | None:
+        """A verified loop T_c_n with its information, or None.
+
+        Two kinds pass. A unique match: the correlative search finds one clearly best alignment and ICP refines it
+        (every gate of the lidar estimator). A sliding match: the place scores as well but slides along an axis (an
+        aisle's length, which the lidar cannot see the end of); ICP from the current estimate then fixes what the
+        scans do fix (across the aisle, the heading) and its covariance leaves the axis free, so the loop carries
+        no information along it instead of a guess."""
+        lc = self.lidar
+        pts, target = self.points[n], self._local_map(c)
+        guess = se2.between(self.poses[c], self.poses[n])
+        cm = correlative_match(pts, target, guess, self.config.correlative)
+        if cm.score < lc.loop_min_score:
+            return None
+        unique = cm.ambiguity <= lc.loop_max_ambiguity
+        if not unique and not self.config.sliding_loops:
+            return None
+        res = icp(pts, target, initial=cm.transform if unique else guess, config=lc.loop_icp)
+        if not (res.converged and res.fitness >= lc.loop_min_fitness and res.rmse_m <= lc.loop_max_rmse_m
+                and np.all(np.isfinite(res.covariance))):
+            return None
+        floor = np.diag([lc.min_sigma_xy_m**2, lc.min_sigma_xy_m**2, lc.min_sigma_theta_rad**2])
+        info = np.asarray(np.linalg.inv(res.covariance + floor), dtype=np.float64)
+        if unique:
+            e = se2.local(res.transform, cm.transform)
+            if float(e @ info @ e) > lc.loop_chi2:
+                return None
+        else:
+            info = free_axis(info, self.config.sliding_sigma_m)
+        return LoopRow(int(self.node_drone[c]), int(self.node_kf[c]), int(self.node_drone[n]), int(self.node_kf[n]),
+                       res.transform, info, stamp)
+
+    # ------------------------------------------------------------------ optimisation
+    def needs_solve(self) -> bool:
+        c = self.config
+        return (self._loops_pending and self._since_solve >= c.loop_solve_gap) or self._since_solve >= c.solve_every
+
+    def solve(self, iterations: int | None = None) -> SolveRecord:
+        """Gauss-Newton on the whole joint graph from the current estimate; marks moved tiles."""
+        cfg = self.config
+        t0 = time.perf_counter()
+        g = FactorGraph()
+        if self._ei:
+            g.add_between(np.asarray(self._ei), np.asarray(self._ej), np.asarray(self._z), np.asarray(self._info))
+        firsts = [own[0] for own in self.keys.values() if own]
+        prior_info = np.diag([cfg.prior_sigma_xy_m**-2, cfg.prior_sigma_xy_m**-2, cfg.prior_sigma_theta_rad**-2])
+        g.add_prior(np.asarray(firsts), self.reported[firsts], np.repeat(prior_info[None], len(firsts), axis=0))
+        before = self.poses.copy()
+        out, _ = optimize(g, Values(np.arange(len(self.poses)), self.poses),
+                          OptimizerConfig(method="gn", max_iterations=iterations or cfg.solve_iterations,
+                                          gauge="none"))
+        self.poses = np.asarray(out.poses, np.float64).copy()
+        moved = np.flatnonzero(np.hypot(*(self.poses[:, :2] - before[:, :2]).T) > 0.02)
+        for k in moved.tolist():
+            self._touch(k)
+        self._since_solve = 0
+        self._loops_pending = False
+        rec = SolveRecord(len(self.poses), len(self._ei) + len(firsts), time.perf_counter() - t0)
+        self.solves.append(rec)
+        return rec
+
+    # ------------------------------------------------------------------ tiles
+    def _tile_of(self, xy: Array) -> tuple[int, int]:
+        t = self.config.tile_m
+        return int(np.floor(xy[0] / t)), int(np.floor(xy[1] / t))
+
+    def _touch(self, key: int) -> None:
+        self._version += 1
+        self.tile_version[self._tile_of(self.poses[key, :2])] = self._version
+
+    def tiles_near(self, xy: Array, radius_m: float) -> list[tuple[int, int]]:
+        t = self.config.tile_m
+        return [k for k in self.tile_version if np.hypot((k[0] + 0.5) * t - xy[0], (k[1] + 0.5) * t - xy[1])
+                <= radius_m + t]
+
+    def tile_raster(self, tile: tuple[int, int], reach_m: float = 12.0) -> bytes:
+        """Hit counts (uint8, saturating) of every keyframe point in ``tile``, zlib-compressed, row-major (y, x);
+        computed once per tile version."""
+        version = self.tile_version.get(tile, -1)
+        hit = self._rasters.get(tile)
+        if hit is not None and hit[0] == version:
+            return hit[1]
+        out = self._raster(tile, reach_m)
+        self._rasters[tile] = (version, out)
+        return out
+
+    def _raster(self, tile: tuple[int, int], reach_m: float) -> bytes:
+        cfg = self.config
+        n = round(cfg.tile_m / cfg.tile_resolution_m)
+        lo = np.array(tile, np.float64) * cfg.tile_m
+        centre = lo + cfg.tile_m / 2
+        near = np.flatnonzero(np.hypot(*(self.poses[:, :2] - centre).T) <= reach_m + cfg.tile_m)
+        counts = np.zeros(n * n, np.int64)
+        if near.size:
+            world = np.vstack([se2.transform_points(self.poses[k], self.points[k]) for k in near.tolist()])
+            ij = np.floor((world - lo) / cfg.tile_resolution_m).astype(np.int64)
+            inside = np.all((ij >= 0) & (ij < n), axis=1)
+            counts = np.bincount(ij[inside, 1] * n + ij[inside, 0], minlength=n * n)
+        return zlib.compress(np.minimum(counts, 255).astype(np.uint8).tobytes(), 6)
+
+    def drone_poses(self, drone: int) -> Array:
+        return self.poses[self.keys.get(drone, [])]

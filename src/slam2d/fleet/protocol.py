@@ -1,0 +1,185 @@
+"""The fleet wire protocol: versioned msgpack messages between drones, the map server and watchers.
+
+Every message is one msgpack map with ``v`` (protocol version) and ``type``. Drone -> server:
+
+* ``hello``  {drone, session, dock [x, y, theta]}: claim drone id ``drone``; the server answers ``welcome``
+  {acked_seq, keyframes} (what it has committed from this drone) or ``error``.
+* ``delta``  {drone, seq, keyframes [{id, stamp, pose, desc, pts}], edges [{a, b, z, info}]}: new keyframes (ids
+  consecutive from the number already committed) and edges between this drone's keyframes (odometry chain and its
+  own loop closures). ``seq`` counts from 1 per drone. Answered by ``ack`` {seq, duplicate, poses, tiles} only
+  after the delta is committed; a resend of a committed delta (same seq, same content) is acknowledged again and
+  changes nothing.
+* ``status`` {}: a snapshot of the merged map for watchers (the lab): ``status`` {drones, keyframes, loops}.
+
+Server -> client errors: ``error`` {code, message, seq?}; they concern the one client that sent the message.
+
+A keyframe carries no raw scan: ``desc`` is a 17-byte range histogram (uint8, fraction of beams per range bin * 255)
+and ``pts`` a subsampled point set in the keyframe frame as little-endian int16 centimetres (x0 y0 x1 y1 ...).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from typing import Any
+
+import msgpack
+import numpy as np
+from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
+
+VERSION = 1
+MAX_MESSAGE_BYTES = 4 << 20
+DESC_BINS = 16
+MAX_POINTS = 120
+POINT_SCALE = 100.0  # int16 centimetres: +-327 m
+MAX_ITEMS = 4096  # keyframes or edges per delta
+
+
+class ProtocolError(ValueError):
+    """A message the server refuses; ``code`` names the kind of refusal for the client."""
+
+    def __init__(self, code: str, message: str, seq: int | None = None) -> None:
+        super().__init__(message)
+        self.code = code
+        self.seq = seq
+
+
+def encode(msg: dict[str, Any]) -> bytes:
+    return bytes(msgpack.packb({"v": VERSION, **msg}, use_bin_type=True))
+
+
+def decode(data: bytes) -> dict[str, Any]:
+    """Parse and check the envelope (size, msgpack, map, version, type)."""
+    if len(data) > MAX_MESSAGE_BYTES:
+        raise ProtocolError("too-large", f"message of {len(data)} bytes exceeds {MAX_MESSAGE_BYTES}")
+    try:
+        msg = msgpack.unpackb(data, raw=False, strict_map_key=True, max_bin_len=MAX_MESSAGE_BYTES)
+    except Exception as e:  # msgpack raises several unrelated types on garbage
+        raise ProtocolError("garbled", f"not a msgpack message ({type(e).__name__})") from None
+    if not isinstance(msg, dict):
+        raise ProtocolError("garbled", f"a message must be a map, got {type(msg).__name__}")
+    v = msg.get("v")
+    if v != VERSION:
+        raise ProtocolError("version", f"protocol version {v!r} is not supported (this server speaks {VERSION})")
+    if not isinstance(msg.get("type"), str):
+        raise ProtocolError("garbled", "message has no 'type'")
+    return msg
+
+
+def _int(msg: dict[str, Any], key: str, lo: int = 0, hi: int = 2**31) -> int:
+    x = msg.get(key)
+    if not isinstance(x, int) or isinstance(x, bool) or not lo <= x < hi:
+        raise ProtocolError("garbled", f"field '{key}' must be an integer in [{lo}, {hi}) (got {x!r})")
+    return x
+
+
+def _floats(x: Any, n: int, what: str) -> Array:
+    if not isinstance(x, list | tuple) or len(x) != n:
+        raise ProtocolError("garbled", f"{what} must be a list of {n} numbers")
+    a = np.asarray([v if isinstance(v, int | float) and not isinstance(v, bool) else np.nan for v in x], np.float64)
+    if not np.all(np.isfinite(a)):
+        raise ProtocolError("garbled", f"{what} must hold finite numbers")
+    return a
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    id: int
+    stamp: float
+    pose: Array  # (3,) in the drone's frame
+    desc: bytes
+    pts: bytes
+
+
+@dataclass(frozen=True)
+class Edge:
+    a: int
+    b: int
+    z: Array  # (3,) T_a_b
+    info: Array  # (6,) upper triangle of the 3x3 information, row-major
+
+
+@dataclass(frozen=True)
+class Delta:
+    drone: int
+    seq: int
+    keyframes: tuple[Keyframe, ...]
+    edges: tuple[Edge, ...]
+    digest: str
+
+
+def parse_hello(msg: dict[str, Any]) -> tuple[int, str, Array]:
+    session = msg.get("session")
+    if not isinstance(session, str) or not 1 <= len(session) <= 64:
+        raise ProtocolError("garbled", "hello: 'session' must be a string of 1..64 characters")
+    return _int(msg, "drone", 0, 1 << 16), session, _floats(msg.get("dock"), 3, "hello: 'dock'")
+
+
+def parse_delta(msg: dict[str, Any]) -> Delta:
+    drone, seq = _int(msg, "drone", 0, 1 << 16), _int(msg, "seq", 1)
+    kfs, edges = msg.get("keyframes"), msg.get("edges")
+    if not isinstance(kfs, list) or not isinstance(edges, list) or len(kfs) + len(edges) > MAX_ITEMS:
+        raise ProtocolError("garbled", f"delta {seq}: 'keyframes' and 'edges' must be lists (at most {MAX_ITEMS})",
+                            seq)
+    out_k = []
+    for i, k in enumerate(kfs):
+        if not isinstance(k, dict):
+            raise ProtocolError("garbled", f"delta {seq}: keyframes[{i}] must be a map", seq)
+        desc, pts = k.get("desc"), k.get("pts")
+        if not isinstance(desc, bytes) or len(desc) != DESC_BINS + 1:
+            raise ProtocolError("garbled", f"delta {seq}: keyframes[{i}].desc must be {DESC_BINS + 1} bytes", seq)
+        if not isinstance(pts, bytes) or len(pts) % 4 or len(pts) > 4 * MAX_POINTS:
+            raise ProtocolError("garbled", f"delta {seq}: keyframes[{i}].pts must be at most {MAX_POINTS} int16 "
+                                           "pairs", seq)
+        stamp = _floats([k.get("stamp")], 1, f"delta {seq}: keyframes[{i}].stamp")[0]
+        out_k.append(Keyframe(_int(k, "id"), float(stamp), _floats(k.get("pose"), 3, f"keyframes[{i}].pose"),
+                              desc, pts))
+    ids = [k.id for k in out_k]
+    if ids and ids != list(range(ids[0], ids[0] + len(ids))):
+        raise ProtocolError("garbled", f"delta {seq}: keyframe ids must be consecutive (got {ids[:5]}...)", seq)
+    out_e = []
+    for i, e in enumerate(edges):
+        if not isinstance(e, dict):
+            raise ProtocolError("garbled", f"delta {seq}: edges[{i}] must be a map", seq)
+        info = _floats(e.get("info"), 6, f"delta {seq}: edges[{i}].info")
+        if not np.all(np.linalg.eigvalsh(info_matrix(info)) > 0):
+            raise ProtocolError("garbled", f"delta {seq}: edges[{i}].info is not positive definite", seq)
+        a, b = _int(e, "a"), _int(e, "b")
+        if a == b:
+            raise ProtocolError("garbled", f"delta {seq}: edges[{i}] joins keyframe {a} to itself", seq)
+        out_e.append(Edge(a, b, _floats(e.get("z"), 3, f"delta {seq}: edges[{i}].z"), info))
+    body = msgpack.packb([msg.get("keyframes"), msg.get("edges")], use_bin_type=True)
+    return Delta(drone, seq, tuple(out_k), tuple(out_e), hashlib.sha256(body).hexdigest())
+
+
+def info_matrix(upper: Array) -> Array:
+    """The symmetric 3x3 information from its row-major upper triangle (6,)."""
+    a, b, c, d, e, f = upper
+    return np.array([[a, b, c], [b, d, e], [c, e, f]], dtype=np.float64)
+
+
+def info_upper(m: Array) -> list[float]:
+    return [float(m[0, 0]), float(m[0, 1]), float(m[0, 2]), float(m[1, 1]), float(m[1, 2]), float(m[2, 2])]
+
+
+def pack_points(pts: Array) -> bytes:
+    """At most MAX_POINTS points (evenly subsampled in beam order), int16 centimetres, clipped to +-327 m."""
+    p = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
+    if len(p) > MAX_POINTS:
+        p = p[np.linspace(0, len(p) - 1, MAX_POINTS).round().astype(np.int64)]
+    q = np.clip(np.round(p * POINT_SCALE), -32767, 32767).astype("<i2")
+    return q.tobytes()
+
+
+def unpack_points(b: bytes) -> Array:
+    return np.frombuffer(b, dtype="<i2").reshape(-1, 2).astype(np.float64) / POINT_SCALE
+
+
+def pack_descriptor(hist: Array) -> bytes:
+    return np.clip(np.round(np.asarray(hist) * 255), 0, 255).astype(np.uint8).tobytes()
+
+
+def unpack_descriptor(b: bytes) -> Array:
+    return np.frombuffer(b, dtype=np.uint8).astype(np.float64) / 255.0
