@@ -131,6 +131,20 @@ CASES: list[tuple[str, str, str]] = [
     ("map", "map save --scenario room --out {d}/m.db --resolution 0", "resolution"),
     ("map", "map save --scenario room --out {d}/m.db --resolution nan", "resolution"),
     ("map", "map save --scenario nowhere --out {d}/m.db", "nowhere"),
+    # map-server, drone (validation before any socket or simulation)
+    ("map-server", "map-server --db {dir}", "directory"),
+    ("map-server", "map-server --db {file}/m.db", "m.db"),
+    ("map-server", "map-server --db {file}", "afile"),
+    ("map-server", "map-server --db {d}/f.db --port -1", "--port"),
+    ("map-server", "map-server --db {d}/f.db --port 70000", "--port"),
+    ("drone", "drone --server nowhere --drone 0", "--server"),
+    ("drone", "drone --server 127.0.0.1:1 --drone -1", "--drone"),
+    ("drone", "drone --server 127.0.0.1:1 --drone 0 --minutes nan", "--minutes"),
+    ("drone", "drone --server 127.0.0.1:1 --drone 0 --minutes -1", "--minutes"),
+    ("drone", "drone --server 127.0.0.1:1 --drone 0 --minutes 1e300", "--minutes"),
+    ("drone", "drone --server 127.0.0.1:1 --drone 0 --blackout x", "--blackout"),
+    ("drone", "drone --server 127.0.0.1:1 --drone 0 --scenario nowhere", "nowhere"),
+    ("drone", "drone --server 127.0.0.1:1 --drone 0 --json {dir}", "directory"),
 ]
 
 

@@ -85,6 +85,16 @@ def parse_blackout(text: str | None) -> tuple[float, float] | None:
     return a, b
 
 
+def parse_server(text: str) -> str:
+    """``tcp://HOST:PORT`` or ``HOST:PORT`` -> a ZeroMQ endpoint; anything else names --server."""
+    addr = text if "://" in text else f"tcp://{text}"
+    scheme, _, rest = addr.partition("://")
+    host, _, port = rest.rpartition(":")
+    if scheme != "tcp" or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"--server: expected tcp://HOST:PORT or HOST:PORT with a port in 1..65535, got {text!r}")
+    return addr
+
+
 def cmd_drone(args: argparse.Namespace) -> int:
     _need_fleet_extra("drone")
     from slam2d.fleet.drone import Drone, DroneConfig
@@ -96,7 +106,7 @@ def cmd_drone(args: argparse.Namespace) -> int:
     if args.scenario not in SCENARIOS:
         raise ValueError(f"--scenario: unknown scenario {args.scenario!r}; valid: {sorted(SCENARIOS)}")
     check_outputs(args, [], [("--json", args.json)])
-    server = args.server if "://" in args.server else f"tcp://{args.server}"
+    server = parse_server(args.server)
     cfg = DroneConfig(scenario=args.scenario, minutes=args.minutes, seed=args.seed, rate=args.rate,
                       blackout=parse_blackout(args.blackout))
     drone = Drone(server, args.drone, cfg, log=lambda s: print(s, file=sys.stderr, flush=True))
