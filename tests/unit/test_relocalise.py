@@ -191,3 +191,13 @@ def test_map_out_equal_to_map_in_is_replaced_atomically_and_only_after_a_decisio
     assert info.created_by == "slam2d lidar session" and info.world_id == aisle_map.world_id
     assert info.counts["keyframes"] > len(aisle_map.keyframe_poses)  # the old keyframes and the new ones
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no temp file left
+
+
+def test_map_save_from_the_lidar_estimator(tmp_path, capsys):
+    out = tmp_path / "L.db"
+    assert main(["map", "save", "--source", "lidar", "--scenario", "warehouse", "--set", "steps=60", "--out",
+                 str(out)]) == 0
+    assert "built by the lidar estimator" in capsys.readouterr().out
+    snap = MapStore.read(out)
+    assert snap.metadata["source"] == "estimator" and len(snap.keyframe_poses) >= 2
+    assert len(snap.edge_nodes) >= len(snap.keyframe_poses) - 1  # the keyframe chain (and any loops)
