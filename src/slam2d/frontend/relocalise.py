@@ -106,6 +106,10 @@ class RelocaliseConfig:
     """log-likelihood of a marker reading the hypothesis cannot explain (floor)."""
     use_markers: bool = True
     """use floor-marker readings (when the map has markers)."""
+    require_marker: bool = True
+    """with markers in use: accept only a winner that a marker reading in the window confirms (within 3 sigma).
+    Scans alone can prefer the wrong one of two mirror-image places when forklifts and moved pallets spoil the
+    evidence (measured: benchmarks/warehouse_flights.py); a read marker id cannot."""
     inject_every: int = 6
     """evidence scans between two rounds of new descriptor candidates while undecided."""
     refine_step_m: float = 0.1
@@ -411,6 +415,21 @@ class Relocaliser:
                              "decided": self.status.decided})
         return self.status
 
+    def _marker_confirmed(self, best: Array) -> bool:
+        """True when markers are not required, else when a buffered marker reading agrees with ``best``."""
+        cfg = self.config
+        if not (cfg.use_markers and cfg.require_marker and self.markers is not None):
+            return True
+        t_map_session = se2.compose(best, se2.inverse(self.odo))
+        for _, pose_j, xy, ids in self._mk:
+            known = (ids >= 0) & (ids < len(self.markers))
+            m = self.markers[ids[known]]
+            good = np.all(np.isfinite(m), axis=1)
+            pred = se2.inverse_transform_points(se2.compose(t_map_session, pose_j), m[good])
+            if np.any(np.sum((pred - xy[known][good]) ** 2, axis=-1) <= (3 * cfg.marker_std_m) ** 2):
+                return True
+        return False
+
     def _decide(self, step: Step, ranges: Array, angles: Array, max_range: float) -> RelocaliseStatus:
         cfg = self.config
         n_ev = len(self._ev_odo)
@@ -421,7 +440,8 @@ class Relocaliser:
         distinct = (np.hypot(d[:, 0], d[:, 1]) > cfg.distinct_xy_m) | (np.abs(d[:, 2]) > cfg.distinct_theta_rad)
         rival = self.score[1:][distinct]
         margin = float(self.score[0] - rival.max()) if rival.size else float("inf")
-        if n_ev < cfg.min_evidence or margin < cfg.accept_margin or self._icp_target is None:
+        if n_ev < cfg.min_evidence or margin < cfg.accept_margin or self._icp_target is None \
+                or not self._marker_confirmed(best):
             return RelocaliseStatus(False, best.copy(), margin, len(self.hyp), n_ev)
         ok = np.isfinite(ranges) & (ranges > 0.05) & (ranges < max_range)
         src = np.stack([ranges[ok] * np.cos(angles[ok]), ranges[ok] * np.sin(angles[ok])], axis=-1)
