@@ -138,6 +138,11 @@ class LidarSession(EstimatorLifecycle):
         if self._lifecycle_finalize() and self.relocalised:
             self.lidar.finalize()
 
+    def close_loop_now(self, z: Array) -> bool:
+        """The lidar estimator's on-demand loop search (False before relocalisation)."""
+        self._check_step()
+        return self.relocalised and self.lidar.close_loop_now(z)
+
     @property
     def diagnostics(self) -> Diagnostics:
         return self.lidar.estimate().diagnostics if self.relocalised else Diagnostics()
