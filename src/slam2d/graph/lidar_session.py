@@ -28,6 +28,7 @@ from slam2d.frontend.relocalise import RelocaliseConfig, Relocaliser
 from slam2d.geometry import se2
 from slam2d.graph.lidar import LidarSLAM, LidarSLAMConfig
 from slam2d.log import Scan, Step
+from slam2d.maps.occupancy import OccupancyConfig, OccupancyGrid
 from slam2d.maps.store import MapSnapshot, MapStore, range_histogram
 
 Array = NDArray[np.float64]
@@ -165,7 +166,7 @@ class LidarSession(EstimatorLifecycle):
         ranges = np.stack([np.asarray(s.ranges_m, dtype=np.float32) for s in scans])
         max_range = float(scans[-1].max_range_m)
         edges, z, info = lid.pose_graph_edges()
-        grid = lid.occupancy_grid(self.config.save_resolution_m)
+        grid = self._static_layer(poses, scans)
         layers: dict[str, NDArray[Any]] = {}
         prior_markers = None if self.prior is None else self.prior.layers.get("floor_markers")
         n_mk = max([len(prior_markers) if prior_markers is not None else 0] + [i + 1 for i in self._markers])
@@ -187,6 +188,23 @@ class LidarSession(EstimatorLifecycle):
             edge_nodes=edges, edge_poses=z, edge_information=info,
             occupancy_logodds=grid.logodds.astype(np.float32), occupancy_origin=grid.origin.copy(),
             occupancy_resolution_m=float(grid.resolution), metadata=meta, layers=layers)
+
+    def _static_layer(self, poses: Array, scans: list[Scan]) -> OccupancyGrid:
+        """Every keyframe scan at its estimated pose in a log-odds grid (as ``LidarSLAM.occupancy_grid``) whose
+        corner lies on a multiple of the cell size: maps saved on different flights share one cell lattice, so
+        their static layers compare cell by cell."""
+        res = self.config.save_resolution_m
+        mr = self.config.lidar.max_range_m
+        pts = [se2.transform_points(p, np.stack([np.cos(s.angles_rad), np.sin(s.angles_rad)], -1)
+                                    * np.where(np.isfinite(s.ranges_m), np.minimum(s.ranges_m, mr), 0.0)[:, None])
+               for p, s in zip(poses, scans, strict=True)]
+        allp = np.vstack([*pts, poses[:, :2]])
+        lo = np.floor(allp.min(axis=0) / res - 10) * res
+        hi = np.ceil(allp.max(axis=0) / res + 10) * res
+        grid = OccupancyGrid((lo[0], lo[1], hi[0], hi[1]), OccupancyConfig(resolution_m=res, free_range_cap_m=0.0))
+        for p, s in zip(poses, scans, strict=True):
+            grid.update(p, s.ranges_m, s.angles_rad, min(s.max_range_m, mr))
+        return grid
 
     def save_map(self, path: str) -> None:
         """Write :meth:`snapshot` to ``path`` atomically (``MapStore.write``; the path may be the prior's file)."""
