@@ -22,13 +22,13 @@ the same evidence as old ones. All of it is one array operation over (hypotheses
 
 Decision: the best hypothesis is accepted only when (1) at least ``min_evidence`` scans are in the window, (2) its
 score beats every *distinct* hypothesis (farther than ``distinct_xy_m`` / ``distinct_theta_rad``) by
-``accept_margin``, and (3) a verification passes: ICP of the current scan against the map's occupied cells
-converges near it with enough inliers, and (4) when the map has floor markers and they are in use
-(``require_marker``), a marker reading in the window agrees with it. Otherwise the status is "undecided" and it keeps trying (new candidates are
-injected every ``inject_every`` evidence scans). In a perfectly symmetric place two hypotheses keep equal scores and
-nothing is ever accepted. Scans alone are not proof: in the small benchmark warehouse (half-turn symmetric racks,
-forklifts, moved pallets) 1 start in 20 per flight accepted the mirror-image place without markers; with markers and
-rule (4), none did (``benchmarks/warehouse_flights.py``).
+``accept_margin``, (3) a verification passes: ICP of the current scan against the map's occupied cells converges
+near it with enough inliers, and (4) when the map has floor markers and they are in use (``require_marker``), a
+marker reading in the window agrees with it. Otherwise the status is "undecided" and it keeps trying (new
+candidates are injected every ``inject_every`` evidence scans). In a perfectly symmetric place two hypotheses keep
+equal scores and nothing is ever accepted. Scans alone are not proof: in the small benchmark warehouse (half-turn
+symmetric racks, forklifts, moved pallets) 1 start in 20 per flight accepted the mirror-image place without
+markers; with markers and rule (4), none did (``benchmarks/warehouse_flights.py``).
 """
 
 from __future__ import annotations
