@@ -1,7 +1,8 @@
 """``slam2d map save|load|info``: saved maps in one SQLite file (see ``slam2d.maps.store``).
 
-``save`` builds a map from a simulated run's TRUE poses (keyframe scans at the true poses, the occupancy grid of
-those scans, a chain pose graph): a mapping-from-truth utility until the lidar estimator writes its own maps.
+``save`` builds a map from a simulated run: by default from its TRUE poses (keyframe scans at the true poses, the
+occupancy grid of those scans, a chain pose graph), or with ``--source lidar`` from the lidar estimator's run (its
+keyframes, pose graph with loops, static layer and the floor markers it read; a cold start at the true start).
 ``load`` reads and validates every array and prints a summary; ``info`` prints the metadata and counts.
 """
 
@@ -27,10 +28,12 @@ def register(sub: Any) -> None:
                                    "SQLite file, written atomically.")
     msub = p.add_subparsers(dest="map_command", metavar="ACTION", required=True)
 
-    s = msub.add_parser("save", help="build a map from a simulated run's true poses and save it",
+    s = msub.add_parser("save", help="build a map from a simulated run (true poses or the lidar estimator) and save it",
                         description="Simulate a scenario and save a map built from the TRUE poses (keyframe scans, "
-                                    "occupancy grid, chain pose graph). A mapping-from-truth utility until the "
-                                    "lidar estimator can fill maps itself.")
+                                    "occupancy grid, chain pose graph), or with --source lidar the map the lidar "
+                                    "estimator built (cold start).")
+    s.add_argument("--source", choices=("truth", "lidar"), default="truth",
+                   help="truth: map at the true poses (default); lidar: the lidar estimator's map")
     s.add_argument("--scenario", default="warehouse", help=f"one of: {', '.join(sorted(SCENARIOS))} "
                                                            "(default warehouse)")
     s.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -64,6 +67,8 @@ def _world_id(scenario: str, seed: int, overrides: dict[str, str]) -> str:
 
 
 def cmd_save(args: argparse.Namespace) -> int:
+    if args.source == "lidar":
+        return _save_from_lidar(args)
     cfg = with_overrides(ScenarioConfig(name=args.scenario), overrides_from(args))
     log = simulate(cfg, args.seed)
     snap = snapshot_from_truth(log, keyframe_every_m=args.keyframe_every_m,
@@ -75,6 +80,38 @@ def cmd_save(args: argparse.Namespace) -> int:
     print(f"wrote {path}: world {snap.world_id}, {c['keyframes']} keyframes, {c['edges']} edges, "
           f"occupancy {snap.occupancy_logodds.shape[1]} x {snap.occupancy_logodds.shape[0]} cells "
           f"at {snap.occupancy_resolution_m} m (built from true poses)")
+    return 0
+
+
+def _save_from_lidar(args: argparse.Namespace) -> int:
+    """``--source lidar``: the lidar session (cold start) over the simulated scenario; its map is saved."""
+    from slam2d.cli.map_session import check_map_files, world_of
+    from slam2d.config import split_overrides
+    from slam2d.graph.lidar_session import LidarSession, LidarSessionConfig
+    from slam2d.lab.registry import get_spec, make_config
+    from slam2d.lab.runner import run
+    from slam2d.sim.simulator import spawn_streams
+
+    over = overrides_from(args)
+    est_only = {k.split(".", 1)[1]: v for k, v in over.items() if k.startswith("estimator.")}
+    rest = {k: v for k, v in over.items() if not k.startswith("estimator.")}
+    scen_over, est_over = split_overrides(rest, ScenarioConfig, get_spec("lidar").config_cls)
+    cfg = with_overrides(ScenarioConfig(name=args.scenario), scen_over)
+    world = world_of(cfg, args.seed)
+    if not args.replace_other_world:
+        check_map_files(None, args.out, world)  # refuse a bad target before the run
+    log = simulate(cfg, args.seed)
+    lidar = make_config("lidar", {**est_over, **est_only}, log.metadata, has_ids=False)
+    est = LidarSession(LidarSessionConfig(lidar=lidar, save_resolution_m=args.resolution), world_id=world,
+                       metadata={"scenario": args.scenario, "seed": args.seed})
+    run(est, log, rng=spawn_streams(args.seed)["estimator"], progress=None)
+    snap = est.snapshot()
+    path = MapStore.write(args.out, snap, created_by="slam2d map save (lidar estimator)",
+                          replace_other_world=args.replace_other_world)
+    c = snap.counts()
+    print(f"wrote {path}: world {snap.world_id}, {c['keyframes']} keyframes, {c['edges']} edges, "
+          f"occupancy {snap.occupancy_logodds.shape[1]} x {snap.occupancy_logodds.shape[0]} cells "
+          f"at {snap.occupancy_resolution_m} m (built by the lidar estimator)")
     return 0
 
 

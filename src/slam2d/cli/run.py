@@ -64,6 +64,12 @@ def register(sub: Any) -> None:
                    help="data association method of the estimator (estimators that associate)")
     p.add_argument("--no-loop-closure", action="store_true",
                    help="switch the estimator's loop closure off (estimators that have one, e.g. graph)")
+    p.add_argument("--map-in", default=None, metavar="A.db",
+                   help="--estimator lidar on a simulated scenario: start from this saved map at an unknown pose "
+                        "(global relocalisation, then localise and keep mapping in the map's frame)")
+    p.add_argument("--map-out", default=None, metavar="B.db",
+                   help="--estimator lidar on a simulated scenario: save the estimated map (keyframes, pose graph, "
+                        "static layer) here, atomically (may equal --map-in)")
     add_set_argument(p)
     add_force_argument(p)
     p.set_defaults(func=cmd)
@@ -102,6 +108,8 @@ def cmd(args: argparse.Namespace) -> int:
                                                          ("--map", args.map)])
     if args.robot == "all" or args.estimator in MULTI_ESTIMATORS or args.unknown_starts:
         return _cmd_multi(args)
+    if args.map_in or args.map_out:
+        return _cmd_session(args)
     log = Log.load(args.log) if args.log else None
     if args.dataset and is_carmen_source(args.dataset):
         log = load_laser_log(args.dataset, args.data_dir, args.max_steps, args.max_time)
@@ -145,6 +153,25 @@ def _simulated(args: argparse.Namespace) -> Log:
             if not k.startswith("estimator.")}
     scen, _ = split_overrides(rest, ScenarioConfig, get_spec(args.estimator).config_cls)
     return simulate(with_overrides(ScenarioConfig(name=args.scenario or "room"), scen), args.seed)
+
+
+def _cmd_session(args: argparse.Namespace) -> int:
+    """``--map-in`` / ``--map-out``: a lidar session with saved maps (slam2d.cli.map_session)."""
+    from slam2d.cli.map_session import run_session, save_session_map
+
+    record, est = run_session(args, overrides_from(args))
+    print_table([record], [c for c in COLUMNS if c in record])
+    rel = record.get("relocalisation")
+    if rel is not None:
+        err = f", error {rel['error_m']:.3f} m / {rel['error_deg']:.2f} deg" if "error_m" in rel else ""
+        print(f"relocalisation: accepted at step {rel['accepted_step']} ({rel['time_to_decide_s']:.1f} s){err}"
+              if rel["relocalised"] else "relocalisation: undecided over the whole run (no pose accepted)")
+    if args.json:
+        write_json(args.json, record)
+    if args.map_out:
+        save_session_map(args.map_out, est)
+        print(f"wrote {args.map_out}")
+    return 0
 
 
 def _cmd_multi(args: argparse.Namespace) -> int:

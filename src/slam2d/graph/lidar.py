@@ -439,3 +439,53 @@ class LidarSLAM(EstimatorLifecycle):
         for p, s in zip(poses, self._kf_scans, strict=True):
             grid.update(p, s.ranges_m, s.angles_rad, min(s.max_range_m, self.config.max_range_m))
         return grid
+
+    # ------------------------------------------------------------------ saved maps
+    # (one block, added for saved maps and relocalisation; used by slam2d.graph.lidar_session)
+    def keyframe_scans(self) -> list[Scan]:
+        """The scan of every keyframe, in keyframe order."""
+        return list(self._kf_scans)
+
+    def pose_graph_edges(self) -> tuple[NDArray[np.int64], Array, Array]:
+        """The keyframe graph's edges: keyframe pairs (E,2), relative poses (E,3), information (E,3,3)."""
+        g = None if self.graph is None else self.graph.graph()
+        if g is None or "between" not in g.kinds():
+            return np.zeros((0, 2), np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3))
+        b = g.block("between")
+        return np.asarray(b.keys.T, dtype=np.int64).reshape(-1, 2), b.z.copy(), b.information
+
+    def seed_prior_map(self, poses: Array, scans: list[Scan], scan: Scan, pose: Array, information: Array,
+                       step_index: int) -> None:
+        """Start from a saved map: right after ``reset(pose)``, make the map's keyframes (``poses`` (K,3), their
+        ``scans``) the oldest keyframes, and the current ``scan`` at the relocalised ``pose`` (information (3,3) of
+        that pose in the map frame) the newest. The old keyframes enter farthest first, joined by stiff edges at
+        their saved relative poses (the old map is held as it was saved), so the nearest ones form the tracking
+        target; loop closures then tie the new keyframes to the old ones. Their keyframe steps are -1 - k (not
+        steps of this run)."""
+        self._check_step()
+        if self.graph is not None or self.steps:
+            raise ValueError("LidarSLAM.seed_prior_map: call it right after reset(), before any step")
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        if len(poses) == 0 or len(scans) != len(poses):
+            raise ValueError("LidarSLAM.seed_prior_map: need one scan per prior keyframe (and at least one)")
+        cfg = self.config
+        order = np.argsort(-np.hypot(*(poses[:, :2] - pose[:2]).T), kind="stable")
+        stiff = np.diag([1 / 0.01**2, 1 / 0.01**2, 1 / 0.002**2])[None]
+        self.graph = IncrementalPoseGraph(poses[order[0]], cfg.graph)
+        for n, k in enumerate(order.tolist()):
+            if n:
+                z = se2.between(poses[order[n - 1]], poses[k])[None]
+                self.graph.add_step(n, np.array([n - 1]), np.array([n]), z, stiff)
+            self._kf_step.append(-1 - k)
+            self._kf_points.append(scan_points(scans[k], cfg.min_range_m, cfg.max_range_m))
+            self._kf_scans.append(scans[k])
+        n = len(order)
+        cov = _relative_cov(np.asarray(np.linalg.inv(information), dtype=np.float64), float(poses[order[-1], 2]))
+        self.graph.add_step(n, np.array([n - 1]), np.array([n]), se2.between(poses[order[-1]], pose)[None],
+                            np.asarray(np.linalg.inv(cov), dtype=np.float64)[None])
+        self._kf_step.append(step_index)
+        self._kf_points.append(scan_points(scan, cfg.min_range_m, cfg.max_range_m))
+        self._kf_scans.append(scan)
+        self._owner[0], self._rel[0] = n, np.zeros(3)
+        self._pose = self.graph.poses[-1].copy()
+        self._version += 1

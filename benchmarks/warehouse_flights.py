@@ -1,0 +1,170 @@
+"""Three flights in the warehouse: a cold start that saves its map, then two flights (pallets relocated) that start
+from the saved map at random unknown poses and must relocalise.
+
+1. flight 1 (``warehouse.flight=0``): the lidar session from the true start (cold start), the whole lawnmower
+   route; its estimated map (keyframes, pose graph, static layer, floor markers it read) is saved;
+2. flights 2 and 3 (``warehouse.flight=1, 2``: a fraction of the pallets moved each time): ``--starts`` random start
+   steps along each flight's route; from each, the relocaliser gets ``--budget-s`` seconds of motion (odometry,
+   lidar, and floor markers or not) against the saved map. Reported: success rate (accepted within the budget and
+   right), WRONG acceptances (error > 0.5 m or > 5 deg: must be 0), time to decide;
+3. the whole of flights 2 and 3 as lidar sessions from the previous flight's saved map (relocalise, then localise and
+   map): the static layers of consecutive flights compared cell by cell (occupied cells, IoU).
+
+Default world (state it with the numbers): 40 x 30 m, 3 aisles, 1 cross-aisle, 40 pallets, 2 forklifts, 10 Hz
+(``dt_s=0.1``), the challenge's 360-beam 30 m lidar; the full 100 x 100 m world is ``--full`` (20 forklifts, 600
+pallets, 30 Hz stepped with the lidar every 3rd step; hours on this machine, not run here).
+
+Run: OPENBLAS_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/warehouse_flights.py [--full] [--starts 20]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from typing import Any
+
+import numpy as np
+
+from slam2d.config import with_overrides
+from slam2d.frontend.relocalise import RelocaliseConfig, Relocaliser
+from slam2d.geometry import se2
+from slam2d.graph.lidar_session import LidarSession, LidarSessionConfig
+from slam2d.lab.runner import run
+from slam2d.maps.store import MapSnapshot
+from slam2d.sim.scenarios import ScenarioConfig
+from slam2d.sim.simulator import simulate, spawn_streams
+
+SMALL = {"warehouse.width_m": "40", "warehouse.depth_m": "30", "warehouse.aisles": "3",
+         "warehouse.cross_aisles": "1", "warehouse.pallets": "40", "moving_objects": "2", "dt_s": "0.1",
+         "steps": "3000"}
+FULL = {"lidar.every": "3", "steps": "80000"}
+WRONG_M, WRONG_DEG = 0.5, 5.0
+
+
+def scenario(base: dict[str, str], flight: int) -> ScenarioConfig:
+    return with_overrides(ScenarioConfig(name="warehouse-challenge"),
+                          {**base, "warehouse.floor_markers": "true", "warehouse.flight": str(flight)})
+
+
+def occupied_cells(s: MapSnapshot) -> set[tuple[int, int]]:
+    """Occupied static-layer cells as global integer cell indices (so maps with different bounds compare)."""
+    iy, ix = np.nonzero(s.occupancy_logodds > np.log(0.65 / 0.35))
+    res = s.occupancy_resolution_m
+    cx = np.floor((s.occupancy_origin[0] + (ix + 0.5) * res) / res).astype(np.int64)
+    cy = np.floor((s.occupancy_origin[1] + (iy + 0.5) * res) / res).astype(np.int64)
+    return set(zip(cx.tolist(), cy.tolist(), strict=True))
+
+
+def iou(a: MapSnapshot, b: MapSnapshot) -> tuple[float, float]:
+    """Cell IoU of the occupied static cells, exact and with a one-cell tolerance (a cell counts as shared when
+    the other map has an occupied cell among its 8 neighbours)."""
+    ca, cb = occupied_cells(a), occupied_cells(b)
+    exact = len(ca & cb) / max(len(ca | cb), 1)
+    near = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
+    ma = sum(any((x + dx, y + dy) in cb for dx, dy in near) for x, y in ca)
+    mb = sum(any((x + dx, y + dy) in ca for dx, dy in near) for x, y in cb)
+    shared = 0.5 * (ma + mb)
+    return exact, shared / max(len(ca) + len(cb) - shared, 1)
+
+
+def session(cfg: ScenarioConfig, seed: int, prior: MapSnapshot | None, world: str) -> tuple[LidarSession, float]:
+    log = simulate(cfg, seed)
+    est = LidarSession(LidarSessionConfig(), prior=prior, world_id=world)
+    t0 = time.perf_counter()
+    run(est, log, rng=spawn_streams(seed)["estimator"], progress=False)
+    return est, time.perf_counter() - t0
+
+
+def trials(prior: MapSnapshot, cfg: ScenarioConfig, seed: int, starts: int, budget_s: float,
+           rng: np.random.Generator) -> list[dict[str, Any]]:
+    log = simulate(cfg, seed)
+    steps = list(log)
+    n = round(budget_s / float(log.metadata["config"]["dt_s"]))
+    picks = np.sort(rng.choice(len(steps) - n, size=starts, replace=False))
+    out = []
+    for s in picks.tolist():
+        for markers in (True, False):
+            rel = Relocaliser(prior, RelocaliseConfig(use_markers=markers), rng=np.random.default_rng(s))
+            row: dict[str, Any] = {"start": s, "markers": markers, "decided": False, "wrong": False}
+            t0 = time.perf_counter()
+            for st in steps[s:s + n]:
+                status = rel.step(st)
+                if status.decided and status.pose is not None:
+                    e = se2.local(log.true_poses[st.index], status.pose)
+                    row.update(decided=True, time_s=st.time_s - steps[s].time_s + float(st.dt_s),
+                               error_m=float(np.hypot(e[0], e[1])), error_deg=float(np.degrees(abs(e[2]))))
+                    row["wrong"] = row["error_m"] > WRONG_M or row["error_deg"] > WRONG_DEG
+                    break
+            row["cpu_s"] = time.perf_counter() - t0
+            row["hypotheses_first"] = rel.history[0]["hypotheses"] if rel.history else 0
+            out.append(row)
+    return out
+
+
+def summarise(rows: list[dict[str, Any]], markers: bool) -> dict[str, Any]:
+    r = [x for x in rows if x["markers"] == markers]
+    ok = [x for x in r if x["decided"] and not x["wrong"]]
+    return {"starts": len(r), "success": len(ok), "success_rate": len(ok) / max(len(r), 1),
+            "wrong": sum(x["wrong"] for x in r), "undecided": sum(not x["decided"] for x in r),
+            "decide_s_median": float(np.median([x["time_s"] for x in ok])) if ok else float("nan"),
+            "decide_s_max": float(np.max([x["time_s"] for x in ok])) if ok else float("nan"),
+            "error_m_max": float(np.max([x["error_m"] for x in ok])) if ok else float("nan"),
+            "cpu_s_per_start": float(np.mean([x["cpu_s"] for x in r])) if r else float("nan")}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--full", action="store_true", help="the 100 x 100 m challenge warehouse (slow)")
+    ap.add_argument("--starts", type=int, default=20)
+    ap.add_argument("--budget-s", type=float, default=10.0)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--json", default=None, help="write every trial and the summary here")
+    ap.add_argument("--maps-dir", default=None, help="save each flight's map here (flight1.db, ...)")
+    ap.add_argument("--skip-trials", action="store_true", help="only the three sessions and the IoU")
+    args = ap.parse_args()
+    base = FULL if args.full else SMALL
+    from slam2d.cli.map_session import world_of
+
+    world = world_of(scenario(base, 0), args.seed)
+    print(f"world: {'100 x 100 m challenge' if args.full else '40 x 30 m, 3 aisles, 40 pallets, 2 forklifts'}, "
+          f"seed {args.seed}, {args.starts} random starts per flight, {args.budget_s:.0f} s of motion each")
+    est1, t1 = session(scenario(base, 0), args.seed, None, world)
+    maps = [est1.snapshot()]
+    if args.maps_dir:
+        est1.save_map(f"{args.maps_dir}/flight1.db")
+    c = maps[0].counts()
+    print(f"flight 1 (cold start): {t1:.0f} s; map {c['keyframes']} keyframes, {c['edges']} edges, "
+          f"{c['occupancy_cells']} cells, {int(np.isfinite(maps[0].layers['floor_markers'][:, 0]).sum())} markers")
+    rng = np.random.default_rng(args.seed)
+    table, record = [], {"world": base, "trials": {}, "iou": {}}
+    for flight in (1, 2):
+        if not args.skip_trials:
+            rows = trials(maps[-1], scenario(base, flight), args.seed, args.starts, args.budget_s, rng)
+            record["trials"][flight + 1] = rows
+            for markers in (True, False):
+                table.append({"flight": flight + 1, "markers": "yes" if markers else "no",
+                              **summarise(rows, markers)})
+        est, t = session(scenario(base, flight), args.seed, maps[-1], world)
+        if not est.relocalised:
+            print(f"flight {flight + 1} session never relocalised; no map to compare")
+            break
+        maps.append(est.snapshot())
+        if args.maps_dir:
+            est.save_map(f"{args.maps_dir}/flight{flight + 1}.db")
+        exact, tol = record["iou"][f"{flight}-{flight + 1}"] = iou(maps[-2], maps[-1])
+        print(f"flight {flight + 1} session: {t:.0f} s, relocalised at step {est.accepted_step}, "
+              f"{est.map_loops} loops into the saved map; static layer IoU vs flight {flight}: {exact:.3f} "
+              f"(one-cell tolerance: {tol:.3f})")
+    cols = ["flight", "markers", "starts", "success", "success_rate", "wrong", "undecided", "decide_s_median",
+            "decide_s_max", "error_m_max", "cpu_s_per_start"]
+    print("  ".join(f"{c:>15s}" for c in cols))
+    for row in table:
+        print("  ".join(f"{row[c]:>15.3f}" if isinstance(row[c], float) else f"{row[c]!s:>15s}" for c in cols))
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump({**record, "table": table}, fh, indent=1, default=float)
+
+
+if __name__ == "__main__":
+    main()

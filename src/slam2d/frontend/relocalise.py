@@ -1,0 +1,460 @@
+"""Global relocalisation against a saved map: start at an unknown pose, keep several hypotheses, decide only when one
+clearly wins.
+
+The map (:class:`~slam2d.maps.store.MapSnapshot`) gives a likelihood field (the static occupancy layer's occupied
+cells, one Euclidean distance transform: ``log(exp(-d^2 / 2 sigma^2) + floor)`` per beam endpoint), keyframes
+(pose, scan, place descriptor) and, when the map has them, floor markers (layer ``floor_markers``: row ``i`` is
+marker ``i``, NaN where unknown).
+
+Hypotheses (H map-frame poses of the robot *now*) come from
+
+* keyframe descriptors: the keyframes whose descriptor is nearest the current scan's; the heading relative to a
+  keyframe from the circular cross-correlation of the two range profiles (an all-round lidar: a rotation is a shift
+  of the beams), the position from a small grid of offsets around the keyframe, each then refined on the scan;
+* floor markers: an ID'd marker read at ``z`` in the robot frame puts the robot on ``m - R(theta) z`` for every
+  heading ``theta``; a ring of headings, refined on the scan (the right heading wins).
+
+Every hypothesis moves with the odometry. Evidence is collected every ``evidence_every_m`` of travel (scans taken at
+the same spot are not independent evidence): the scan (``beams`` beams) and the marker readings since the last one.
+A hypothesis' score is the tempered log-likelihood of the *whole evidence window* (the last ``window`` evidence
+scans, each placed by the hypothesis and the odometry between then and now), so hypotheses born late are judged on
+the same evidence as old ones. All of it is one array operation over (hypotheses, scans, beams).
+
+Decision: the best hypothesis is accepted only when (1) at least ``min_evidence`` scans are in the window, (2) its
+score beats every *distinct* hypothesis (farther than ``distinct_xy_m`` / ``distinct_theta_rad``) by
+``accept_margin``, (3) a verification passes: ICP of the current scan against the map's occupied cells converges
+near it with enough inliers, and (4) when the map has floor markers and they are in use (``require_marker``), a
+marker reading in the window agrees with it. Otherwise the status is "undecided" and it keeps trying (new
+candidates are injected every ``inject_every`` evidence scans). In a perfectly symmetric place two hypotheses keep
+equal scores and nothing is ever accepted. Scans alone are not proof: in the small benchmark warehouse (half-turn
+symmetric racks, forklifts, moved pallets) 1 start in 20 per flight accepted the mirror-image place without
+markers; with markers and rule (4), none did (``benchmarks/warehouse_flights.py``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from slam2d.config import check_positive
+from slam2d.frontend.icp import ICPConfig, icp, prepare_target
+from slam2d.geometry import se2
+from slam2d.geometry.angles import wrap_angle
+from slam2d.log import Step
+from slam2d.maps.store import MapSnapshot, range_histogram
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True, kw_only=True)
+class RelocaliseConfig:
+    """Settings of global relocalisation."""
+
+    beams: int = 72
+    """beams of each scan used for scoring (evenly subsampled)."""
+    sigma_m: float = 0.15
+    """spread of the likelihood field around occupied cells (m)."""
+    likelihood_floor: float = 0.05
+    """added to the field's Gaussian before the log: a beam on a forklift or a moved pallet costs log(floor), not
+    minus infinity."""
+    occupied_probability: float = 0.65
+    """static-layer cells above this probability are walls."""
+    through_penalty: float = 0.0
+    """extra cost (nats, before tempering) of a beam that passes through a mapped wall before its endpoint. A short
+    reading (a forklift, a pallet that arrived) only misses the field; a reading through the map's walls (a pallet
+    that left, or the wrong place) is stronger evidence against the pose. 0 (default): off; measured on the small
+    warehouse it cost 6x the time and accepted more wrong mirror poses, not fewer."""
+    through_margin_m: float = 0.3
+    """the pass-through check stops this short of the endpoint (m)."""
+    scan_weight: float = 0.1
+    """temper of a scan's summed log-likelihood (beams of one scan are not independent)."""
+    evidence_every_m: float = 0.25
+    """travel between two evidence scans (m) ..."""
+    evidence_every_rad: float = 0.25
+    """... or turn (rad)."""
+    window: int = 40
+    """evidence scans a hypothesis is scored on (the newest)."""
+    min_evidence: int = 8
+    """evidence scans needed before any decision."""
+    accept_margin: float = 12.0
+    """the winner's score must beat every distinct hypothesis by this (tempered nats)."""
+    distinct_xy_m: float = 1.0
+    """hypotheses farther apart than this (m) ..."""
+    distinct_theta_rad: float = 0.3
+    """... or turned more than this (rad) are different answers."""
+    merge_xy_m: float = 0.25
+    """hypotheses closer than this (m) and ``merge_theta_rad`` are merged (the better kept)."""
+    merge_theta_rad: float = 0.08
+    """see ``merge_xy_m`` (rad)."""
+    max_hypotheses: int = 300
+    """at most this many hypotheses are kept (the best)."""
+    prune_margin: float = 60.0
+    """hypotheses scoring this far below the best are dropped."""
+    descriptor_candidates: int = 200
+    """keyframes (nearest descriptors) that seed hypotheses."""
+    heading_peaks: int = 2
+    """headings per keyframe (peaks of the range-profile correlation; an aisle looks alike both ways)."""
+    offset_m: float = 0.5
+    """positions +- this around a keyframe are tried (m) ..."""
+    offset_step_m: float = 0.25
+    """... on this grid (m)."""
+    marker_headings: int = 72
+    """headings tried around a read marker."""
+    marker_std_m: float = 0.05
+    """standard deviation of a marker reading against a hypothesis (reading noise and odometry drift) (m)."""
+    marker_floor: float = -20.0
+    """log-likelihood of a marker reading the hypothesis cannot explain (floor)."""
+    use_markers: bool = True
+    """use floor-marker readings (when the map has markers)."""
+    require_marker: bool = True
+    """with markers in use: accept only a winner that a marker reading in the window confirms (within 3 sigma).
+    Scans alone can prefer the wrong one of two mirror-image places when forklifts and moved pallets spoil the
+    evidence (measured: benchmarks/warehouse_flights.py); a read marker id cannot."""
+    inject_every: int = 6
+    """evidence scans between two rounds of new descriptor candidates while undecided."""
+    refine_step_m: float = 0.1
+    """first hill-climbing step in x and y (m; halved each round)."""
+    refine_step_rad: float = 0.04
+    """first hill-climbing step in heading (rad; halved each round)."""
+    refine_rounds: int = 3
+    """hill-climbing rounds per evidence scan."""
+    verify_min_fitness: float = 0.6
+    """verification: fraction of the scan's points ICP must match to the map."""
+    verify_max_shift_m: float = 0.3
+    """verification: ICP may move the winner by at most this (m) ..."""
+    verify_max_turn_rad: float = 0.1
+    """... and this (rad)."""
+    icp: ICPConfig = field(default_factory=lambda: ICPConfig(max_correspondence_m=0.4, trim_fraction=0.8,
+                                                             tolerance=1e-4))
+    """verification scan matcher."""
+
+    def __post_init__(self) -> None:
+        check_positive(self, "sigma_m", "likelihood_floor", "scan_weight", "evidence_every_m", "evidence_every_rad",
+                       "accept_margin", "distinct_xy_m", "distinct_theta_rad", "merge_xy_m", "merge_theta_rad",
+                       "prune_margin", "offset_step_m", "through_margin_m", "marker_std_m", "refine_step_m",
+                       "refine_step_rad",
+                       "verify_min_fitness", "verify_max_shift_m", "verify_max_turn_rad")
+        for n in ("beams", "window", "min_evidence", "max_hypotheses", "descriptor_candidates", "heading_peaks",
+                  "marker_headings", "inject_every", "refine_rounds"):
+            if getattr(self, n) < 1:
+                raise ValueError(f"RelocaliseConfig.{n} must be >= 1 (got {getattr(self, n)})")
+        if self.min_evidence > self.window:
+            raise ValueError(f"RelocaliseConfig.min_evidence ({self.min_evidence}) must be <= window ({self.window})")
+        if not 0 < self.occupied_probability < 1:
+            raise ValueError("RelocaliseConfig.occupied_probability must be in (0, 1)")
+        if self.through_penalty < 0:
+            raise ValueError("RelocaliseConfig.through_penalty must be >= 0")
+        if self.marker_floor >= 0:
+            raise ValueError("RelocaliseConfig.marker_floor must be < 0")
+
+
+@dataclass(frozen=True)
+class RelocaliseStatus:
+    """Where relocalisation stands after a step: ``decided`` with ``pose`` (map frame, now) and ``information``
+    (3,3) of the verification, else the best guess so far; ``margin`` of the best over the best distinct rival
+    (inf when there is none), hypothesis and evidence counts."""
+
+    decided: bool
+    pose: Array | None
+    margin: float
+    hypotheses: int
+    evidence: int
+    information: Array | None = None
+
+
+class LikelihoodField:
+    """``log(exp(-d^2 / 2 sigma^2) + floor)`` of the static layer's occupied cells, looked up for many points."""
+
+    def __init__(self, snapshot: MapSnapshot, config: RelocaliseConfig) -> None:
+        lo = snapshot.occupancy_logodds.astype(np.float64)
+        thr = np.log(config.occupied_probability / (1 - config.occupied_probability))
+        self.occupied = lo > thr
+        self.origin = snapshot.occupancy_origin.astype(np.float64)
+        self.res = float(snapshot.occupancy_resolution_m)
+        d = np.asarray(ndimage.distance_transform_edt(~self.occupied), dtype=np.float64) * self.res
+        self.table = np.log(np.exp(-0.5 * (d / config.sigma_m) ** 2) + config.likelihood_floor).astype(np.float32)
+        self.outside = float(np.log(config.likelihood_floor))
+        iy, ix = np.nonzero(self.occupied)
+        self.points = self.origin + (np.stack([ix, iy], axis=-1) + 0.5) * self.res
+
+    def _cells(self, xy: Array) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
+        ix = np.floor((xy[..., 0] - self.origin[0]) / self.res).astype(np.int64)
+        iy = np.floor((xy[..., 1] - self.origin[1]) / self.res).astype(np.int64)
+        ny, nx = self.table.shape
+        ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        return np.clip(iy, 0, ny - 1), np.clip(ix, 0, nx - 1), ok
+
+    def __call__(self, xy: Array) -> Array:
+        """Log-likelihood of world points (..., 2) -> (...)."""
+        iy, ix, ok = self._cells(xy)
+        return np.where(ok, self.table[iy, ix].astype(np.float64), self.outside)
+
+    def through(self, origin: Array, xy: Array, margin_m: float) -> NDArray[np.bool_]:
+        """Does the segment from ``origin`` (..., 2) to each endpoint ``xy`` (..., B, 2), stopped ``margin_m``
+        short, cross an occupied cell? Checked at 4 points along it. -> (..., B)."""
+        d = xy - origin[..., None, :]
+        r = np.hypot(d[..., 0], d[..., 1])
+        scale = np.maximum(r - margin_m, 0.0) / np.maximum(r, 1e-9)
+        hit = np.zeros(xy.shape[:-1], dtype=bool)
+        for f in (0.25, 0.5, 0.75, 1.0):  # four samples, each one array operation over every beam
+            iy, ix, ok = self._cells(origin[..., None, :] + (f * scale)[..., None] * d)
+            hit |= ok & self.occupied[iy, ix]
+        return hit
+
+
+def _scan_xy(ranges: Array, angles: Array, max_range: float,
+             idx: NDArray[np.intp]) -> tuple[Array, NDArray[np.bool_]]:
+    """Subsampled beam endpoints (len(idx), 2) in the robot frame and their validity mask (hit, finite)."""
+    r, a = ranges[idx], angles[idx]
+    ok = np.isfinite(r) & (r > 0.05) & (r < max_range)
+    r = np.where(ok, r, 0.0)
+    return np.stack([r * np.cos(a), r * np.sin(a)], axis=-1), ok
+
+
+class Relocaliser:
+    """Multi-hypothesis global relocalisation against one map (see the module docstring).
+
+    ``step(step)`` once per log step (odometry, scan, marker readings) returns a :class:`RelocaliseStatus`;
+    ``history`` records every evidence update (step, time, hypotheses, margin, best pose) for reports.
+    """
+
+    def __init__(self, snapshot: MapSnapshot, config: RelocaliseConfig | None = None, *,
+                 rng: np.random.Generator) -> None:
+        self.config = cfg = config or RelocaliseConfig()
+        self.map = snapshot
+        self.rng = rng  # candidate generation is deterministic today; kept for subsampling ties
+        self.field = LikelihoodField(snapshot, cfg)
+        self._icp_target = prepare_target(self.field.points, cfg.icp) if len(self.field.points) else None
+        markers = snapshot.layers.get("floor_markers")
+        self.markers = None if markers is None else np.asarray(markers, dtype=np.float64).reshape(-1, 2)
+        self.kf_poses = snapshot.keyframe_poses
+        self.kf_desc = self._descriptors()
+        self.hyp = np.zeros((0, 3))
+        self.score = np.zeros(0)
+        self.odo = np.zeros(3)  # robot pose in the session (odometry) frame
+        self._last_evidence: Array | None = None
+        self._ev_odo: list[Array] = []  # per evidence scan: session pose, points (B,2), mask (B,)
+        self._ev_pts: list[Array] = []
+        self._ev_ok: list[NDArray[np.bool_]] = []
+        self._mk: list[tuple[int, Array, Array, NDArray[np.int64]]] = []  # (evidence no., session pose, xy, ids)
+        self.evidence_count = 0
+        self.history: list[dict[str, object]] = []
+        self.status = RelocaliseStatus(False, None, 0.0, 0, 0)
+
+    # ------------------------------------------------------------------ candidates
+    def _descriptors(self) -> Array:
+        s = self.map
+        d = range_histogram(s.keyframe_scans, s.scan_max_range_m)
+        return d if s.descriptors.shape[1] != d.shape[1] else np.asarray(s.descriptors, dtype=np.float64)
+
+    def _circular(self, angles: Array) -> bool:
+        """Do the beams cover the whole circle evenly (a rotation is then a shift of the beam index)?"""
+        b = len(angles)
+        if b < 8 or len(self.map.scan_angles_rad) != b or not np.allclose(angles, self.map.scan_angles_rad):
+            return False
+        step = 2 * np.pi / b
+        return bool(np.allclose(np.diff(angles), step, atol=1e-6))
+
+    def _descriptor_candidates(self, ranges: Array, angles: Array, max_range: float) -> Array:
+        """Poses (N,3) around the keyframes whose descriptors are nearest the scan's."""
+        cfg = self.config
+        if len(self.kf_poses) == 0:
+            return np.zeros((0, 3))
+        desc = range_histogram(ranges, self.map.scan_max_range_m)
+        dist = np.abs(self.kf_desc - desc).sum(axis=1)
+        top = np.argsort(dist, kind="stable")[: cfg.descriptor_candidates]
+        if self._circular(angles):
+            r = np.where(np.isfinite(ranges) & (ranges < max_range), ranges, max_range)
+            kf = np.asarray(self.map.keyframe_scans[top], dtype=np.float64)
+            kf = np.where(np.isfinite(kf) & (kf < self.map.scan_max_range_m), kf, self.map.scan_max_range_m)
+            cur = np.fft.rfft(r - r.mean())
+            prof = np.fft.rfft(kf - kf.mean(axis=1, keepdims=True), axis=1)
+            corr = np.fft.irfft(np.conj(cur)[None] * prof, n=len(r), axis=1)  # (M, B): shift s -> theta_k + s*step
+            b = len(r)
+            headings = []
+            for _ in range(cfg.heading_peaks):
+                s = np.argmax(corr, axis=1)
+                headings.append(self.kf_poses[top, 2] + s * 2 * np.pi / b)
+                band = (np.arange(b)[None] - s[:, None]) % b
+                corr = np.where((band < b // 8) | (band > b - b // 8), -np.inf, corr)
+            th = np.stack(headings, axis=1)  # (M, P)
+        else:
+            th = self.kf_poses[top, 2][:, None] + np.linspace(-np.pi, np.pi, 16, endpoint=False)[None]
+        n = round(cfg.offset_m / cfg.offset_step_m)
+        off = np.arange(-n, n + 1) * cfg.offset_step_m
+        ox, oy = np.meshgrid(off, off, indexing="ij")
+        xy = self.kf_poses[top, None, None, :2] + np.stack([ox.ravel(), oy.ravel()], axis=-1)[None, None]
+        xy = np.broadcast_to(xy, (len(top), th.shape[1], ox.size, 2))
+        tt = np.broadcast_to(th[:, :, None], xy.shape[:3])
+        return np.concatenate([xy, tt[..., None]], axis=-1).reshape(-1, 3)
+
+    def _marker_candidates(self, xy: Array, ids: NDArray[np.int64]) -> Array:
+        """Poses (N,3) that put the read marker where the map has it, for a ring of headings."""
+        if self.markers is None:
+            return np.zeros((0, 3))
+        ok = (ids >= 0) & (ids < len(self.markers))
+        ok[ok] &= np.all(np.isfinite(self.markers[ids[ok]]), axis=1)
+        if not ok.any():
+            return np.zeros((0, 3))
+        th = np.linspace(-np.pi, np.pi, self.config.marker_headings, endpoint=False)
+        m, z = self.markers[ids[ok]], xy[ok]
+        c, s = np.cos(th)[None], np.sin(th)[None]
+        x = m[:, None, 0] - (c * z[:, None, 0] - s * z[:, None, 1])
+        y = m[:, None, 1] - (s * z[:, None, 0] + c * z[:, None, 1])
+        return np.stack([x, y, np.broadcast_to(th, x.shape)], axis=-1).reshape(-1, 3)
+
+    # ------------------------------------------------------------------ scoring
+    def _scan_score(self, poses: Array, pts: Array, ok: NDArray[np.bool_]) -> Array:
+        """Tempered log-likelihood of one scan at poses (..., 3) -> (...)."""
+        cfg = self.config
+        w = se2.transform_points(poses[..., None, :], pts)  # (..., B, 2)
+        ll = self.field(w)
+        if cfg.through_penalty > 0:
+            ll = ll - cfg.through_penalty * self.field.through(poses[..., :2], w, cfg.through_margin_m)
+        return cfg.scan_weight * np.sum(ll * ok, axis=-1)
+
+    def _refine(self, poses: Array, pts: Array, ok: NDArray[np.bool_]) -> Array:
+        """Hill-climb every pose on one scan: the best of 27 moves per round, steps halved each round."""
+        cfg = self.config
+        g = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij")).reshape(3, -1).T
+        step = np.array([cfg.refine_step_m, cfg.refine_step_m, cfg.refine_step_rad])
+        for _ in range(cfg.refine_rounds):
+            cand = poses[:, None, :] + (g * step)[None]  # (H, 27, 3)
+            best = np.argmax(self._scan_score(cand, pts, ok), axis=1)
+            poses = cand[np.arange(len(poses)), best]
+            step = step / 2
+        poses[:, 2] = wrap_angle(poses[:, 2])
+        return poses
+
+    def _window_score(self, hyp: Array) -> Array:
+        """Score of every hypothesis on the whole evidence window (and the buffered marker readings)."""
+        cfg = self.config
+        if not self._ev_odo:
+            return np.zeros(len(hyp))
+        t_map_session = se2.compose(hyp, se2.inverse(self.odo))  # (H,3)
+        odo = np.asarray(self._ev_odo)  # (W,3)
+        poses = se2.compose(t_map_session[:, None, :], odo[None])  # (H,W,3)
+        score = self._scan_score(poses, np.asarray(self._ev_pts)[None], np.asarray(self._ev_ok)[None]).sum(axis=1)
+        if self._mk and self.markers is not None and cfg.use_markers:
+            # every buffered reading at once: (H, R) predicted vs read marker positions in the robot frame
+            pose_r = np.vstack([np.broadcast_to(p, (len(i), 3)) for _, p, _, i in self._mk])
+            xy = np.vstack([x for _, _, x, _ in self._mk])
+            ids = np.concatenate([i for _, _, _, i in self._mk])
+            known = (ids >= 0) & (ids < len(self.markers))
+            known[known] &= np.all(np.isfinite(self.markers[ids[known]]), axis=1)
+            if known.any():
+                p = se2.compose(t_map_session[:, None, :], pose_r[known][None])  # (H,R,3)
+                pred = se2.inverse_transform_points(p, self.markers[ids[known]][None])
+                e2 = np.sum((pred - xy[known][None]) ** 2, axis=-1) / cfg.marker_std_m**2
+                score = score + np.maximum(-0.5 * e2, cfg.marker_floor).sum(axis=1)
+        return np.asarray(score, dtype=np.float64)
+
+    def _merge(self, hyp: Array, score: Array) -> tuple[Array, Array]:
+        """Best first; drop hypotheses in an occupied merge cell, far below the best, or over the budget."""
+        cfg = self.config
+        order = np.argsort(-score, kind="stable")
+        hyp, score = hyp[order], score[order]
+        key = np.stack([np.floor(hyp[:, 0] / cfg.merge_xy_m), np.floor(hyp[:, 1] / cfg.merge_xy_m),
+                        np.floor(wrap_angle(hyp[:, 2]) / cfg.merge_theta_rad)], axis=-1)
+        _, first = np.unique(key, axis=0, return_index=True)
+        keep = np.sort(first)
+        hyp, score = hyp[keep], score[keep]
+        if len(score):
+            live = score >= score[0] - cfg.prune_margin
+            hyp, score = hyp[live], score[live]
+        return hyp[: cfg.max_hypotheses], score[: cfg.max_hypotheses]
+
+    # ------------------------------------------------------------------ the step
+    def step(self, step: Step) -> RelocaliseStatus:
+        """Move every hypothesis by the odometry; on an evidence step rescore, inject, refine and decide."""
+        cfg = self.config
+        self.odo = se2.compose(self.odo, step.odometry)
+        if len(self.hyp):
+            self.hyp = se2.compose(self.hyp, step.odometry).reshape(-1, 3)
+        new = np.zeros((0, 3))
+        if cfg.use_markers and step.markers is not None and len(step.markers):
+            self._mk.append((self.evidence_count, self.odo.copy(), step.markers.xy_m.copy(), step.markers.ids.copy()))
+            new = self._marker_candidates(step.markers.xy_m, step.markers.ids)
+        scan = step.scan
+        moved = self._last_evidence is None or (
+            np.hypot(*se2.between(self._last_evidence, self.odo)[:2]) >= cfg.evidence_every_m
+            or abs(se2.between(self._last_evidence, self.odo)[2]) >= cfg.evidence_every_rad)
+        if scan is None or not (moved or len(new)):
+            self.status = RelocaliseStatus(False, self.status.pose if not len(self.hyp) else self.hyp[0].copy(),
+                                           self.status.margin, len(self.hyp), len(self._ev_odo))
+            return self.status
+        ranges = np.asarray(scan.ranges_m, dtype=np.float64)
+        angles = np.asarray(scan.angles_rad, dtype=np.float64)
+        idx = np.unique(np.linspace(0, len(ranges) - 1, min(cfg.beams, len(ranges))).round().astype(np.intp))
+        pts, ok = _scan_xy(ranges, angles, float(scan.max_range_m), idx)
+        if moved:
+            self._last_evidence = self.odo.copy()
+            self.evidence_count += 1
+            self._ev_odo.append(self.odo.copy())
+            self._ev_pts.append(pts)
+            self._ev_ok.append(ok)
+            if len(self._ev_odo) > cfg.window:
+                del self._ev_odo[0], self._ev_pts[0], self._ev_ok[0]
+            oldest = self.evidence_count - len(self._ev_odo)
+            self._mk = [m for m in self._mk if m[0] >= oldest]
+            if (self.evidence_count - 1) % cfg.inject_every == 0:
+                new = np.vstack([new, self._descriptor_candidates(ranges, angles, float(scan.max_range_m))])
+        if len(new):
+            # keep the best of each candidate batch on this scan before refining (refinement costs 27x)
+            quick = self._scan_score(new, pts, ok)
+            top = np.argsort(-quick, kind="stable")[: 4 * cfg.max_hypotheses]
+            self.hyp = np.vstack([self.hyp, new[top]])
+        if len(self.hyp):
+            self.hyp = self._refine(self.hyp, pts, ok)
+            self.hyp, self.score = self._merge(self.hyp, self._window_score(self.hyp))
+        self.status = self._decide(step, ranges, angles, float(scan.max_range_m))
+        best = None if not len(self.hyp) else self.hyp[0]
+        self.history.append({"step": int(step.index), "time_s": float(step.time_s), "hypotheses": len(self.hyp),
+                             "evidence": len(self._ev_odo), "margin": float(self.status.margin),
+                             "best": None if best is None else [float(v) for v in best],
+                             "decided": self.status.decided})
+        return self.status
+
+    def _marker_confirmed(self, best: Array) -> bool:
+        """True when markers are not required, else when a buffered marker reading agrees with ``best``."""
+        cfg = self.config
+        if not (cfg.use_markers and cfg.require_marker and self.markers is not None):
+            return True
+        t_map_session = se2.compose(best, se2.inverse(self.odo))
+        for _, pose_j, xy, ids in self._mk:
+            known = (ids >= 0) & (ids < len(self.markers))
+            m = self.markers[ids[known]]
+            good = np.all(np.isfinite(m), axis=1)
+            pred = se2.inverse_transform_points(se2.compose(t_map_session, pose_j), m[good])
+            if np.any(np.sum((pred - xy[known][good]) ** 2, axis=-1) <= (3 * cfg.marker_std_m) ** 2):
+                return True
+        return False
+
+    def _decide(self, step: Step, ranges: Array, angles: Array, max_range: float) -> RelocaliseStatus:
+        cfg = self.config
+        n_ev = len(self._ev_odo)
+        if not len(self.hyp):
+            return RelocaliseStatus(False, None, 0.0, 0, n_ev)
+        best = self.hyp[0]
+        d = se2.between(best[None], self.hyp[1:]) if len(self.hyp) > 1 else np.zeros((0, 3))
+        distinct = (np.hypot(d[:, 0], d[:, 1]) > cfg.distinct_xy_m) | (np.abs(d[:, 2]) > cfg.distinct_theta_rad)
+        rival = self.score[1:][distinct]
+        margin = float(self.score[0] - rival.max()) if rival.size else float("inf")
+        if n_ev < cfg.min_evidence or margin < cfg.accept_margin or self._icp_target is None \
+                or not self._marker_confirmed(best):
+            return RelocaliseStatus(False, best.copy(), margin, len(self.hyp), n_ev)
+        ok = np.isfinite(ranges) & (ranges > 0.05) & (ranges < max_range)
+        src = np.stack([ranges[ok] * np.cos(angles[ok]), ranges[ok] * np.sin(angles[ok])], axis=-1)
+        res = icp(src, self._icp_target, initial=best, config=cfg.icp)
+        e = se2.local(best, res.transform)
+        passed = bool(res.converged and res.fitness >= cfg.verify_min_fitness
+                      and np.hypot(e[0], e[1]) <= cfg.verify_max_shift_m and abs(e[2]) <= cfg.verify_max_turn_rad
+                      and np.all(np.isfinite(res.covariance)))
+        if not passed:
+            return RelocaliseStatus(False, best.copy(), margin, len(self.hyp), n_ev)
+        floor = np.diag([0.02**2, 0.02**2, 0.005**2])
+        info = np.asarray(np.linalg.inv(res.covariance + floor), dtype=np.float64)
+        return RelocaliseStatus(True, res.transform.copy(), margin, len(self.hyp), n_ev, info)
