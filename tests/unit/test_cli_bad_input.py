@@ -145,6 +145,13 @@ CASES: list[tuple[str, str, str]] = [
     ("drone", "drone --server 127.0.0.1:1 --drone 0 --blackout x", "--blackout"),
     ("drone", "drone --server 127.0.0.1:1 --drone 0 --scenario nowhere", "nowhere"),
     ("drone", "drone --server 127.0.0.1:1 --drone 0 --json {dir}", "directory"),
+    # run with saved maps (checked before the run starts)
+    ("run", "run --scenario room --estimator lidar --map-in {file}", "afile"),
+    ("run", "run --scenario room --estimator lidar --map-in {d}/missing.db", "missing.db"),
+    ("run", "run --scenario room --estimator lidar --map-in {dir}", "directory"),
+    ("run", "run --scenario room --estimator lidar --map-out {file}", "afile"),
+    ("run", "run --scenario room --estimator lidar --map-out {dir}", "directory"),
+    ("run", "run --scenario room --estimator ekf --map-out {d}/m.db", "lidar"),
 ]
 
 
