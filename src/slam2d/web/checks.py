@@ -138,4 +138,15 @@ CHECKS: dict[str, Check] = {
          "odometry factor, and a match to an old scan is a loop closure.",
          "Scan matching has no landmarks and no ids: it aligns raw points.",
          "It is relative: it says how two poses relate, not where either one is.")),
+    "warehouse": Check(
+        "Two aisles look the same to the lidar. What should relocalisation do until something tells them apart?",
+        ("Keep both hypotheses and accept neither until one clearly wins (or a floor marker confirms it)",
+         "Pick the aisle with the slightly better scan match at once",
+         "Give up and start a new map"),
+        0,
+        ("Right: a wrong aisle accepted is worse than no answer; the hypotheses collapse only when the evidence "
+         "(more scans while moving, a marker id) separates them, and the status stays undecided until then.",
+         "A small score difference between mirror-image places is noise (a forklift, a moved pallet); accepting "
+         "it is how a wrong relocalisation happens.",
+         "The saved map is still right; it is the pose in it that is unknown.")),
 }

@@ -60,6 +60,9 @@ TAGS: dict[str, tuple[str, str]] = {
     "GRDM": ("(1,3)", "grid placement: origin x, origin y (m) of cell (0,0)'s corner, cell size (m)"),
     "FEAT": ("(K,2)", "detected features in the world"),
     "TCOR": ("(C,2)", "true corners in the world"),
+    "FORK": ("(4F,4)", "forklift outlines from the simulator (truth), four segments per forklift"),
+    "HYPO": ("(H,3)", "relocalisation hypotheses (map-frame poses), best first"),
+    "HHIS": ("(N,2)", "relocalisation history: time since the start (s), hypotheses kept"),
 }
 
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 from slam2d.web.checks import CHECKS
 from slam2d.web.sessions import AssociationSession, FeaturesSession, GraphSession, MapsSession, Session, SimSession
+from slam2d.web.sessions.warehouse import WarehouseSession
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,8 @@ PAGES: tuple[Page, ...] = (
                                            "obs_ellipses", "view"))),
     Page("connections", 10, "Connections", "what lidar, visual and multi-robot SLAM add to what you have seen",
          lambda seed: MapsSession(seed, page="connections", title="connections", layer="points")),
+    Page("warehouse", 11, "The warehouse design challenge", "saved maps, relocalisation in identical aisles, "
+         "forklifts; the five questions with measured answers", lambda seed: WarehouseSession(seed)),
 )
 
 PAGE_BY_SLUG = {p.slug: p for p in PAGES}

@@ -275,6 +275,7 @@ function draw() {
   view.dots(s.TCOR, COLORS.trueCorner, 9);
   view.crosses(s.FEAT, COLORS.feature, 5);
   if (s.PCOV && s.EPOS) view.ellipses(s.EPOS, s.PCOV, COLORS.ellipse, 3);
+  if (lab.extraDraw) lab.extraDraw(view, s); // a page's own sections (e.g. warehouse.html)
   view.robot(s.TPOS, COLORS.robot);
   view.robot(s.EPOS, COLORS.estRobot, 0.35);
   if (heatCanvas) drawHeat(heatCanvas, s.HEAT);
