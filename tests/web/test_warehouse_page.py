@@ -6,11 +6,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
-from slam2d.web.sessions.warehouse import max_forklifts
-
-pytestmark = pytest.mark.browser
+from slam2d.geometry import se2
+from slam2d.web.frames import decode_frame, encode_frame
+from slam2d.web.params import CommandError
+from slam2d.web.sessions.warehouse import WarehouseSession, max_forklifts, scenario
 
 FRAMES = "window.slamLab && window.slamLab.drawn > 3 && window.slamLab.hello !== null"
 
@@ -34,6 +36,7 @@ PIXELS = """() => {
 }"""
 
 
+@pytest.mark.browser
 def test_warehouse_relocalises_and_draws_the_static_layer(page: Any, lab_server: str, artifacts: Path) -> None:
     errors = open_page(page, f"{lab_server}/lab/warehouse?hz=15")
     page.wait_for_function(FRAMES, timeout=50_000)  # the first session builds the saved map (seconds)
@@ -61,6 +64,7 @@ def test_warehouse_relocalises_and_draws_the_static_layer(page: Any, lab_server:
     assert errors == []
 
 
+@pytest.mark.browser
 def test_warehouse_controls(page: Any, lab_server: str) -> None:
     errors = open_page(page, f"{lab_server}/lab/warehouse?hz=10&seed=1")
     page.wait_for_function(FRAMES, timeout=50_000)
@@ -85,3 +89,34 @@ def test_warehouse_controls(page: Any, lab_server: str) -> None:
     page.wait_for_function("window.slamLab.relocText.startsWith('undecided') || "
                            "window.slamLab.relocText.startsWith('relocalised')", timeout=30_000)
     assert errors == []
+
+
+def test_forklift_range_is_the_scenario_validation() -> None:
+    hi = max_forklifts()
+    scenario(0, hi, False)  # the largest count the layout holds is valid ...
+    with pytest.raises(ValueError, match="moving_objects"):
+        scenario(0, hi + 1, False)  # ... and one more is refused by the scenario itself
+
+
+def test_session_numbers_come_from_the_relocaliser_and_the_simulator() -> None:
+    s = WarehouseSession(seed=0)
+    with pytest.raises(CommandError, match="forklifts"):
+        s.apply({"type": "param", "name": "forklifts", "value": max_forklifts() + 1})
+    seen = []
+    for _ in range(60):
+        s.step_once()
+        _, sec = decode_frame(encode_frame(0, s.sections()))
+        nums = dict(zip(s.scalars, sec["NUMS"][0].tolist(), strict=True))
+        rel = s.est.relocaliser
+        assert rel is not None
+        if not s.est.relocalised:
+            assert nums["hypotheses"] == len(rel.hyp) and len(sec["HYPO"]) == len(rel.hyp)
+            seen.append(len(rel.hyp))
+        else:
+            assert "HYPO" not in sec and nums["accepted_step"] == s.est.accepted_step - s.start_step
+        assert len(sec["FORK"]) == 4 * len(s.sim.world.moving)
+        e = se2.local(s.sim.pose, s.est.estimate().pose)
+        assert nums["error_m"] == pytest.approx(np.hypot(e[0], e[1]), abs=1e-4)
+    assert max(seen) > 1  # several hypotheses at first
+    h = sec["HHIS"]
+    assert len(h) == len(rel.history) and np.all(np.diff(h[:, 0]) >= 0)

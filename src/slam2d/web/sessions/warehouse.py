@@ -142,9 +142,6 @@ class WarehouseSession(Session):
         self._grid_at = -np.inf
         self._grid_keyframes = -1
         self._image: tuple[object, Array, Array, float] | None = None
-        self.notices = [] if prior is None else [
-            f"saved map: {len(prior.keyframe_poses)} keyframes from flight 1 (built from true poses by "
-            "snapshot_from_truth, not by the estimator)"]
 
     def bounds(self) -> tuple[float, float, float, float]:
         return tuple(float(b) for b in self.sim.world.bounds)  # type: ignore[return-value]
