@@ -120,3 +120,17 @@ def test_session_numbers_come_from_the_relocaliser_and_the_simulator() -> None:
     assert max(seen) > 1  # several hypotheses at first
     h = sec["HHIS"]
     assert len(h) == len(rel.history) and np.all(np.diff(h[:, 0]) >= 0)
+
+
+def test_cold_start_has_no_relocaliser_and_draws_its_own_static_layer() -> None:
+    s = WarehouseSession(seed=2)
+    s.apply({"type": "param", "name": "start", "value": "cold start"})
+    assert s.est.relocaliser is None and s.prior is None
+    assert "hypotheses" not in s.rows() and "keyframes" in s.rows()
+    for _ in range(40):
+        s.step_once()
+    sec = dict(s.sections())
+    assert "HYPO" not in sec and "GRID" in sec
+    grid = s.est.lidar.occupancy_grid()
+    nums = dict(zip(s.scalars, sec["NUMS"].tolist(), strict=True))
+    assert nums["static_cells"] == float((grid.probability() > 0.65).sum())

@@ -50,6 +50,7 @@ WAREHOUSE_LABELS = {
     "decide_s": "time to relocalise (s of motion)",
     "error_m": "position error vs truth (m)",
     "error_deg": "heading error vs truth (deg)",
+    "map_keyframes": "keyframes in the saved map",
     "keyframes": "keyframes in the estimator",
     "map_loops": "loops into the saved map",
     "forklifts": "forklifts (simulator)",
@@ -146,6 +147,10 @@ class WarehouseSession(Session):
     def bounds(self) -> tuple[float, float, float, float]:
         return tuple(float(b) for b in self.sim.world.bounds)  # type: ignore[return-value]
 
+    def rows(self) -> list[str]:
+        reloc = ("hypotheses", "evidence", "margin", "accepted_step", "decide_s", "map_keyframes", "map_loops")
+        return [k for k in self.scalars if self.prior is not None or k not in reloc]
+
     def on_param(self, name: str, value: Any, old: Any) -> None:
         if not self.params[name].live:
             self._build()
@@ -221,6 +226,7 @@ class WarehouseSession(Session):
             "decide_s": float(self.est.accepted_time_s - self.start_time)
             if self.est.accepted_time_s is not None else nan,
             "error_m": float(np.hypot(err[0], err[1])), "error_deg": float(np.degrees(abs(err[2]))),
+            "map_keyframes": float(len(self.prior.keyframe_poses)) if self.prior is not None else nan,
             "keyframes": float(len(lid.keyframe_poses)) if self.est.relocalised else 0.0,
             "map_loops": float(self.est.map_loops) if self.prior is not None else nan,
             "forklifts": float(len(self.sim.world.moving)),
