@@ -13,6 +13,7 @@ points as dynamic, so every scan point has one colour and the forklifts are draw
 
 from __future__ import annotations
 
+import time
 from functools import lru_cache
 from typing import Any
 
@@ -55,6 +56,8 @@ WAREHOUSE_LABELS = {
     "map_loops": "loops into the saved map",
     "forklifts": "forklifts (simulator)",
     "static_cells": "static layer: occupied cells",
+    "step_ms": "estimator time per step, last 50 (ms)",
+    "step_ms_max": "slowest of the last 50 steps (ms)",
 }
 
 
@@ -137,6 +140,7 @@ class WarehouseSession(Session):
                                 world_id=sim_world_id(self.sim.metadata()))
         self.est.reset(self.sim.pose.copy(), rng=spawn_streams(seed)["estimator"])
         self._acc = 0.0
+        self._step_s: list[float] = []
         self._scan_local: Array = np.zeros((0, 2))
         self._true_path: list[Array] = [self.sim.pose[:2].copy()]
         self._grid: OccupancyGrid | None = None
@@ -171,7 +175,10 @@ class WarehouseSession(Session):
 
     def step_once(self) -> None:
         step = self.sim.step(*self.driver.command(self.sim.pose, self.sim.world.walls))
+        t0 = time.perf_counter()
         self.est.step(step)
+        self._step_s.append(time.perf_counter() - t0)
+        del self._step_s[:-50]
         if step.scan is not None:
             self._scan_local = scan_to_points(step.scan.ranges_m, step.scan.angles_rad, step.scan.max_range_m)
         self._true_path.append(self.sim.pose[:2].copy())
@@ -231,6 +238,8 @@ class WarehouseSession(Session):
             "map_loops": float(self.est.map_loops) if self.prior is not None else nan,
             "forklifts": float(len(self.sim.world.moving)),
             "static_cells": float(cells),
+            "step_ms": 1e3 * float(np.mean(self._step_s)) if self._step_s else nan,
+            "step_ms_max": 1e3 * float(np.max(self._step_s)) if self._step_s else nan,
         }
         out: Sections = [("NUMS", np.array([nums[k] for k in self.scalars])), ("WALL", self.sim.world.walls),
                          ("TPOS", self.sim.pose), ("TPTH", downsample(np.asarray(self._true_path)))]
