@@ -25,6 +25,10 @@ from slam2d.web.sessions.base import Array, Sections, Session, abs_correlation, 
 
 #: wall time one frame may spend stepping the simulation and estimator before the frame goes out anyway
 STEP_BUDGET_S = 0.05
+#: poses re-optimised per step by the graph back end on these pages (``GraphSLAMConfig.window``)
+GRAPH_WINDOW = 25
+#: graph edges drawn at most (about): a long drive's thousands of factors would bury the map
+MAX_EDGES = 3000
 #: the loop page's "you are back" prompt: after driving farther than AWAY from the start, coming within NEAR of it
 RETURN_AWAY_M, RETURN_NEAR_M = 20.0, 6.0
 
@@ -133,6 +137,8 @@ class SimSession(Session):
             out["particles"] = int(self.values["particles"])
         if self.heat and "snapshot_full_cov" in fields:  # the EKF copies its full P only when asked (O(N^2))
             out["snapshot_full_cov"] = True
+        if "window" in fields:  # graph SLAM: bounded work per step, so a long drive keeps the page's frame rate
+            out["window"] = GRAPH_WINDOW
         if "loop_closure" in self.params and "loop_closure" in fields:
             out["loop_closure"] = bool(self.values["loop_closure"])
         return out
@@ -448,13 +454,15 @@ def graph_view_sections(view: GraphView) -> Sections:
     pk = view.pose_keys
     poses = view.poses[:, :2]
     segs = []
-    for kind, keys in view.edges.items():
-        if kind not in ("between", "range_bearing", "point", "bearing", "range"):
-            continue  # unary factors (priors, GPS) have no edge to draw
-        k = np.asarray(keys, dtype=np.int64).reshape(-1, 2)
+    # unary factors (priors, GPS) have no edge to draw; beyond MAX_EDGES, every n-th edge (thinned before lookup)
+    drawn = {kind: keys for kind, keys in view.edges.items() if kind in ("between", "range_bearing", "point", "bearing",
+                                                                        "range")}
+    stride = max(1, sum(len(k) for k in drawn.values()) // MAX_EDGES)
+    for kind, keys in drawn.items():
+        k = np.asarray(keys, dtype=np.int64).reshape(-1, 2)[::stride]
         if kind == "between":
             segs.append(np.hstack([_lookup(pk, poses, k[:, 0]), _lookup(pk, poses, k[:, 1])]))
         else:
             segs.append(np.hstack([_lookup(pk, poses, k[:, 0]), _lookup(view.point_keys, view.points, k[:, 1])]))
     edges = np.vstack(segs) if segs else np.zeros((0, 4))
-    return [("GNOD", poses), ("GEDG", edges[:: max(1, len(edges) // 3000)])]
+    return [("GNOD", poses), ("GEDG", edges)]
