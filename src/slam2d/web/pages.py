@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 from slam2d.web.checks import CHECKS
 from slam2d.web.sessions import AssociationSession, FeaturesSession, GraphSession, MapsSession, Session, SimSession
+from slam2d.web.tasks import TASKS
 
 
 @dataclass(frozen=True)
@@ -18,9 +19,10 @@ class Page:
     build: Callable[[int], Session]
 
     def make(self, seed: int) -> Session:
-        """A new session for this page (with the chapter's check question)."""
+        """A new session for this page (with the chapter's check question and try-this task)."""
         session = self.build(seed)
         session.check = CHECKS.get(self.slug)
+        session.task = TASKS.get(self.slug)
         return session
 
 

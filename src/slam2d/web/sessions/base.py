@@ -98,6 +98,23 @@ class Session:
         self.actions: tuple[tuple[str, str], ...] = ()
         self.keys_down: set[str] = set()
         self.check: Check | None = None
+        self.task: str | None = None  # the chapter's "Try this" prompt (slam2d.web.tasks)
+        self.task_result: str | None = None  # written by the session when it sees the task done
+        self._state_changed = False
+
+    def complete_task(self, result: str) -> None:
+        """The task is done: show ``result`` (once; the page gets the new state with the next frame)."""
+        if self.task is not None and self.task_result is None:
+            self.task_result = result
+            self._state_changed = True
+
+    def push_state(self) -> None:
+        """Send the state with the next frame (e.g. a notice written while advancing, not by a command)."""
+        self._state_changed = True
+
+    def take_state_change(self) -> bool:
+        changed, self._state_changed = self._state_changed, False
+        return changed
 
     # --- commands -----------------------------------------------------------------------------------------------
     def apply(self, msg: Mapping[str, Any]) -> dict[str, Any] | None:
@@ -163,8 +180,10 @@ class Session:
 
     def state(self) -> dict[str, Any]:
         """What changes with commands but not every frame: values, notices, drawing bounds, rows that apply."""
+        task = None if self.task is None else {"prompt": self.task, "result": self.task_result}
         return {"type": "state", "values": dict(self.values), "notices": list(self.notices),
-                "bounds": list(self.bounds()), "rows": list(self.rows()), "inactive": list(self.inactive())}
+                "bounds": list(self.bounds()), "rows": list(self.rows()), "inactive": list(self.inactive()),
+                "task": task}
 
     def inactive(self) -> Sequence[str]:
         """Controls that change nothing under the current settings (the page greys them out)."""

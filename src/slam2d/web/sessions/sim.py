@@ -25,6 +25,9 @@ from slam2d.web.sessions.base import Array, Sections, Session, abs_correlation, 
 
 #: wall time one frame may spend stepping the simulation and estimator before the frame goes out anyway
 STEP_BUDGET_S = 0.05
+#: try-this tasks: the step at which runs are compared; the big loop's "away" and "back" distances from the start
+#: and the steps after the return before the correction is reported
+TASK_STEP, BIG_LOOP_AWAY_M, BIG_LOOP_NEAR_M, TASK_SETTLE_STEPS = 200, 10.0, 2.0, 20
 #: poses re-optimised per step by the graph back end on these pages (``GraphSLAMConfig.window``)
 GRAPH_WINDOW = 25
 #: graph edges drawn at most (about): a long drive's thousands of factors would bury the map
@@ -108,6 +111,7 @@ class SimSession(Session):
         if page == "loop":
             self.actions += (("close_loop", "close loop now"),)
         self.error: str | None = None
+        self._ate_at: dict[str, float] = {}  # try-this bookkeeping that outlives a restart (estimator, noise)
         self._build()
 
     # --- construction -------------------------------------------------------------------------------------------
@@ -169,6 +173,9 @@ class SimSession(Session):
         self.last_step: Step | None = None
         self.ghost: Array | None = None
         self._been_away = False
+        self._big_away = False
+        self._away_sigma = 0.0
+        self._return: tuple[int, Array, float, float, float] | None = None
         # break-it damage (same rules as slam2d.lab.breakit, applied step by step): its own random stream
         self.breakit_rng = np.random.default_rng([int(self.values["seed"]), 0xB4EA])
         ids = self.sim.world.landmark_ids
@@ -231,6 +238,7 @@ class SimSession(Session):
             return
         obs = self.last_step.observations
         before = self.trajectory().copy()
+        ate_before = self.ate_rmse()
         try:
             ok = bool(self.est.close_loop_now(obs.z[obs.landmark_id != -2]))
         except Exception as e:
@@ -241,6 +249,9 @@ class SimSession(Session):
         if ok:
             self.ghost = before  # drawn faintly: the path before the correction, for before/after
             self.notices = [n for n in self.notices if not n.startswith("try this")]
+            moved = float(np.max(np.hypot(*(self.trajectory()[:, :2] - before[:, :2]).T)))
+            self.complete_task(f"Done: the closure moved the estimated path by up to {moved:.2f} m (grey: before) "
+                               f"and the trajectory error went {ate_before:.3f} -> {self.ate_rmse():.3f} m.")
         self.notices.append("close loop: accepted — the correction spread along the trajectory" if ok else
                             "close loop: no verified loop from here (drive back near the start and try again)")
 
@@ -283,6 +294,64 @@ class SimSession(Session):
         if self.page == "loop":
             self._watch_for_return()
         self.est_path.append(np.asarray(self.snap.pose, dtype=np.float64).copy())
+        if self.task is not None and self.task_result is None:
+            self._watch_task()
+
+    def _watch_task(self) -> None:
+        """Detect the page's try-this task (slam2d.web.tasks) from the run so far."""
+        page, i = self.page, self.sim.index
+        if page == "problem" and i == TASK_STEP:
+            self._ate_at[str(self.values["estimator"])] = self.ate_rmse()
+            if "dead-reckoning" in self._ate_at and len(self._ate_at) >= 2:
+                rows = ", ".join(f"{k} {v:.3f} m" for k, v in self._ate_at.items())
+                self.complete_task(f"Done: trajectory error at step {TASK_STEP}: {rows}. Without landmarks nothing "
+                                   "pulls the estimate back, so dead reckoning drifts without bound.")
+        elif page == "drift" and i == TASK_STEP // 2:
+            noise = float(self.values["motion_noise"])
+            self._ate_at[f"{noise:g}"] = self.ate_rmse()
+            low = [k for k in self._ate_at if float(k) == 0.0]
+            high = [k for k in self._ate_at if float(k) >= 10.0]
+            if low and high:
+                self.complete_task(f"Done: after {i} steps the ATE is {self._ate_at[low[0]]:.3f} m with no odometry "
+                                   f"noise and {self._ate_at[high[0]]:.3f} m with noise x{high[0]}: drift comes only "
+                                   "from the noise, and it accumulates.")
+        elif page == "fastslam" and self.snap.particles is not None and self.snap.particles.resampled:
+            m = len(self.snap.particles.poses)
+            if m <= 20:
+                self.complete_task(f"Done: at step {i} the weights of the {m} particles were uneven enough (N_eff "
+                                   f"{self.snap.particles.n_eff:.1f}, below {m / 2:g}) that the filter resampled: "
+                                   "heavy particles were copied, light ones dropped.")
+        elif page in ("ekf", "simulator"):
+            self._watch_big_loop()
+
+    def _watch_big_loop(self) -> None:
+        """The robot left its start by more than BIG_LOOP_AWAY_M and came back within BIG_LOOP_NEAR_M: record the
+        estimate, and TASK_SETTLE_STEPS later say what coming back corrected."""
+        start = self.true_path[0][:2]
+        d = float(np.hypot(*(self.sim.pose[:2] - start)))
+        if self._return is None:
+            if d > BIG_LOOP_AWAY_M:
+                self._big_away = True
+                self._away_sigma = max(self._away_sigma, self._position_sigma())
+            elif self._big_away and d < BIG_LOOP_NEAR_M:
+                self._return = (self.sim.index, self.trajectory().copy(), self._position_sigma(),
+                                self.numbers()["pose_error_m"], self.ate_rmse())
+            return
+        i0, traj0, s0, e0, a0 = self._return
+        if self.sim.index - i0 < TASK_SETTLE_STEPS:
+            return
+        moved = float(np.max(np.hypot(*(self.trajectory()[: len(traj0), :2] - traj0[:, :2]).T)))
+        how = (f"the estimated path itself moved by up to {moved:.2f} m: this back end re-estimates the past"
+               if moved > 1e-6 else "the path drawn so far did not move: a filter corrects the present pose and "
+               "the map, not the past")
+        self.complete_task(f"Done: back at the start at step {i0} (position uncertainty, 1 sigma, at most "
+                           f"{self._away_sigma:.3f} m while away). Over the next {TASK_SETTLE_STEPS} steps it went "
+                           f"{s0:.3f} -> {self._position_sigma():.3f} m and the "
+                           f"position error {e0:.3f} -> {self.numbers()['pose_error_m']:.3f} m; {how}.")
+
+    def _position_sigma(self) -> float:
+        cov = self.snap.pose_cov
+        return float(np.sqrt(np.trace(np.asarray(cov)[:2, :2]) / 2)) if cov is not None else float("nan")
 
     def _watch_for_return(self) -> None:
         """The loop page's try-this: notice when the robot comes back to where it started after a long drive, and
