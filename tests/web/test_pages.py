@@ -354,3 +354,16 @@ def test_graph_page_draws_the_true_path(page: Any, lab_server: str) -> None:
     page.wait_for_function(FRAMES + " && window.slamLab.counters.poses > 30", timeout=WAIT_MS)
     assert page.evaluate("window.slamLab.sections.TPTH")[0] > 30
     assert errors == []
+
+
+def test_simulator_lidar_back_end_draws_its_occupancy_grid(page: Any, lab_server: str, artifacts: Path) -> None:
+    errors = open_page(page, f"{lab_server}/lab/simulator?hz=20&seed=0")
+    page.wait_for_function(FRAMES, timeout=WAIT_MS)
+    page.locator("#ctl-drive").select_option("route")
+    page.locator("#ctl-estimator").select_option("lidar")
+    page.wait_for_function("window.slamLab.values.estimator === 'lidar'", timeout=WAIT_MS)
+    set_control(page, "steps_per_s", 30)
+    page.wait_for_function("window.slamLab.sections.GRID && window.slamLab.sections.GRID[0] > 10", timeout=WAIT_MS)
+    assert any("lidar: a scan every" in n for n in page.evaluate("window.slamLab.notices"))
+    page.screenshot(path=str(artifacts / "simulator-lidar-grid.png"))
+    assert errors == []

@@ -12,6 +12,7 @@ import numpy as np
 
 from slam2d.estimator import Estimate, Estimator, GraphView, SupportsGraphView, SupportsLoopClosure
 from slam2d.eval.trajectory import ate
+from slam2d.graph.lidar import LidarSLAM
 from slam2d.lab.registry import estimator_names, get_spec, make_estimator
 from slam2d.log import Step
 from slam2d.models.lidar import LidarConfig
@@ -28,6 +29,10 @@ STEP_BUDGET_S = 0.05
 #: try-this tasks: the step at which runs are compared; the big loop's "away" and "back" distances from the start
 #: and the steps after the return before the correction is reported
 TASK_STEP, BIG_LOOP_AWAY_M, BIG_LOOP_NEAR_M, TASK_SETTLE_STEPS = 200, 10.0, 2.0, 20
+#: the lidar back end on the simulator page: its worlds, a scan every LIDAR_EVERY steps, its grid rebuilt every
+#: LIDAR_GRID_EVERY steps with at most about LIDAR_GRID_CELLS cells
+LIDAR_WORLDS = ("room", "warehouse")
+LIDAR_EVERY, LIDAR_GRID_EVERY, LIDAR_GRID_CELLS = 2, 20, 40_000
 #: poses re-optimised per step by the graph back end on these pages (``GraphSLAMConfig.window``)
 GRAPH_WINDOW = 25
 #: graph edges drawn at most (about): a long drive's thousands of factors would bury the map
@@ -129,7 +134,9 @@ class SimSession(Session):
         extra: dict[str, Any] = {}
         if landmarks > 0 and "landmarks" in SCENARIOS[name].defaults:
             extra["landmarks"] = landmarks
-        return ScenarioConfig(name=name, sensor=sensor, motion=motion, lidar=LidarConfig(enabled=False), **extra)
+        # scans only for the lidar back end, every LIDAR_EVERY steps (scan matching costs more than a step)
+        lidar = LidarConfig(every=LIDAR_EVERY) if self.values["estimator"] == "lidar" else LidarConfig(enabled=False)
+        return ScenarioConfig(name=name, sensor=sensor, motion=motion, lidar=lidar, **extra)
 
     def _config_fields(self, name: str) -> set[str]:
         return {f.name for f in dataclasses.fields(get_spec(name).config_cls)}
@@ -149,9 +156,14 @@ class SimSession(Session):
 
     def _build(self) -> None:
         """(Re)start the simulator and estimator from the current values (same seed: same world and noise)."""
-        self.sim = Simulator(self._scenario_config(), seed=int(self.values["seed"]))
         name = str(self.values["estimator"])
         self.start_error: str | None = None
+        if name == "lidar" and self.values["scenario"] not in LIDAR_WORLDS:
+            self.start_error = (f"estimator 'lidar' matches scans against walls: choose the world "
+                                f"{' or '.join(LIDAR_WORLDS)}; showing 'dead-reckoning' instead.")
+            name = self.values["estimator"] = "dead-reckoning"
+        self.sim = Simulator(self._scenario_config(), seed=int(self.values["seed"]))
+        self._grid: tuple[int, Array, Array] | None = None  # the lidar map: step built, probabilities, placement
         try:
             self.est: Estimator = make_estimator(name, self._estimator_overrides(name) or None,
                                                  log_metadata=self.sim.metadata())
@@ -196,6 +208,9 @@ class SimSession(Session):
                          "no heat map for it.")
         if self.start_error:
             notes.append(self.start_error)
+        if isinstance(self.est, LidarSLAM):
+            notes.append(f"lidar: a scan every {LIDAR_EVERY} steps (scan matching costs more than a step); the "
+                         f"occupancy grid drawn is rebuilt from the keyframes every {LIDAR_GRID_EVERY} steps.")
         if self.error:
             notes.append(self.error)
         self.notices = notes
@@ -502,10 +517,27 @@ class SimSession(Session):
             h = self.heat_matrix()
             if h is not None:
                 out.append(("HEAT", h))
+        if isinstance(self.est, LidarSLAM) and self.sim.index > 0:
+            out.extend(self._lidar_grid())
         show_graph = self.show_graph or self.values["view"] == "graph"
         if show_graph and isinstance(self.est, SupportsGraphView):
             out.extend(graph_view_sections(self.est.graph_view()))
         return out
+
+
+    def _lidar_grid(self) -> Sections:
+        """The lidar back end's occupancy grid (its public ``occupancy_grid()``), rebuilt every LIDAR_GRID_EVERY
+        steps at a resolution that keeps it under LIDAR_GRID_CELLS cells."""
+        assert isinstance(self.est, LidarSLAM)
+        if self._grid is None or self.sim.index - self._grid[0] >= LIDAR_GRID_EVERY:
+            try:
+                x0, y0, x1, y1 = self.bounds()
+                res = max(0.1, float(np.sqrt((x1 - x0 + 2) * (y1 - y0 + 2) / LIDAR_GRID_CELLS)))
+                grid = self.est.occupancy_grid(res)
+            except ValueError:  # no keyframe yet
+                return []
+            self._grid = (self.sim.index, grid.probability(), np.array([*grid.origin, grid.resolution]))
+        return [("GRID", self._grid[1]), ("GRDM", self._grid[2])]
 
 
 def _lookup(keys: np.ndarray, values: Array, query: np.ndarray) -> Array:
