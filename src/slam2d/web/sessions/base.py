@@ -26,6 +26,32 @@ MAX_PATH_POINTS = 1500
 HEAT_MAX = 96
 
 
+class PathBuffer:
+    """A growing path of poses (T, 3): amortised O(1) ``append``; ``np.asarray`` gives the filled rows as a view
+    (a list of arrays would be copied into a new array on every frame)."""
+
+    def __init__(self, first: Any) -> None:
+        self._a = np.zeros((1024, 3))
+        self._n = 0
+        self.append(first)
+
+    def append(self, pose: Any) -> None:
+        if self._n == len(self._a):
+            self._a = np.concatenate([self._a, np.zeros_like(self._a)])
+        self._a[self._n] = pose
+        self._n += 1
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, i: Any) -> Any:
+        return self._a[: self._n][i]
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> Array:
+        view = self._a[: self._n]
+        return view.astype(dtype) if dtype is not None else (view.copy() if copy else view)
+
+
 def downsample(points: Array, limit: int = MAX_PATH_POINTS) -> Array:
     """At most ``limit`` rows, evenly spaced, always keeping the last one (the current pose)."""
     n = len(points)

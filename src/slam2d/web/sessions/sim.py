@@ -22,7 +22,15 @@ from slam2d.sim.scenarios import SCENARIOS, ScenarioConfig
 from slam2d.sim.simulator import Simulator
 from slam2d.sim.trajectory import AutoExplorer, WaypointFollower
 from slam2d.web.params import Param
-from slam2d.web.sessions.base import Array, Sections, Session, abs_correlation, downsample, observation_covariances
+from slam2d.web.sessions.base import (
+    Array,
+    PathBuffer,
+    Sections,
+    Session,
+    abs_correlation,
+    downsample,
+    observation_covariances,
+)
 
 #: wall time one frame may spend stepping the simulation and estimator before the frame goes out anyway
 STEP_BUDGET_S = 0.05
@@ -179,8 +187,8 @@ class SimSession(Session):
         speed = float(self.sim.config.speed_mps or 1.0)
         self.explorer = AutoExplorer(speed, self.sim.rng["driver"])
         self.route = WaypointFollower(self.sim.waypoints, speed)
-        self.true_path: list[Array] = [self.sim.pose.copy()]
-        self.est_path: list[Array] = [np.asarray(self.snap.pose, dtype=np.float64).copy()]
+        self.true_path = PathBuffer(self.sim.pose)
+        self.est_path = PathBuffer(self.snap.pose)
         self.seen: set[int] = set()
         self.last_step: Step | None = None
         self.ghost: Array | None = None
@@ -305,10 +313,10 @@ class SimSession(Session):
         self.last_step = step
         ids = raw.observations.landmark_id  # "seen" counts what the sensor saw, before any break-it damage
         self.seen.update(int(i) for i in np.unique(ids[ids >= 0]))
-        self.true_path.append(self.sim.pose.copy())
+        self.true_path.append(self.sim.pose)
         if self.page == "loop":
             self._watch_for_return()
-        self.est_path.append(np.asarray(self.snap.pose, dtype=np.float64).copy())
+        self.est_path.append(self.snap.pose)
         if self.task is not None and self.task_result is None:
             self._watch_task()
 
