@@ -113,3 +113,16 @@ def test_window_values_are_written_back_only_inside_the_window():
     est._optimize(2, local=True)
     moved = np.any(est.values.poses != before.poses, axis=1)
     assert not np.any(moved[:-10]) and isinstance(est.values, Values)
+
+
+def test_window_mode_leaves_unknown_association_on_the_whole_graph():
+    """Unknown association gates with the joint belief of the whole graph: window mode changes nothing there."""
+    log = slam2d.simulate("loop", seed=0, steps=120)
+    snaps = []
+    for window in (0, 25):
+        est = _run(log, window=window, **{"association.method": "mahalanobis"})
+        for step in log:
+            est.step(step)
+        snaps.append(est.estimate())
+    np.testing.assert_array_equal(snaps[0].trajectory, snaps[1].trajectory)
+    np.testing.assert_array_equal(snaps[0].pose_cov, snaps[1].pose_cov)

@@ -157,7 +157,7 @@ class GraphSLAM(EstimatorLifecycle):
             if self._assoc.method != "known" and self.tent_keys.size:
                 drop = self._count_tentative_misses()
                 self._retire_tentatives(np.zeros_like(drop), drop)
-        if cfg.window:
+        if self._windowed:
             # window mode: a loop waits for the next window solve (which folds it in) unless a whole-graph solve is
             # due; window solves fall between keyframes, so loop detection and a solve rarely share a step
             if loop_added and t - self._last_full >= cfg.full_every:
@@ -166,7 +166,7 @@ class GraphSLAM(EstimatorLifecycle):
                 self._optimize(cfg.window_iterations, local=True)
         elif loop_added or t % cfg.optimize_every == 0:
             self._optimize(cfg.iterations * (4 if loop_added else 1))
-        if cfg.window:
+        if self._windowed:
             if t >= len(self._pose_covs):
                 self._pose_covs = np.concatenate([self._pose_covs, np.zeros_like(self._pose_covs)])
             self._pose_covs[t] = self.belief.pose_cov
@@ -229,14 +229,14 @@ class GraphSLAM(EstimatorLifecycle):
 
     def _optimize(self, iterations: int, *, all_points: bool = False, local: bool = False) -> None:
         """Optimise the whole graph, or with ``local`` in window mode only the window (bounded work)."""
-        window = self._solve_window(iterations) if local and self.config.window else None
+        window = self._solve_window(iterations) if local and self._windowed else None
         if window is None:
             cfg = self.optimizer.config
             if cfg.max_iterations != iterations:
                 self.optimizer.config = OptimizerConfig(method="lm", max_iterations=iterations)
             self.values, _ = self.optimizer.optimize(self.values)
             self._last_full = self.index
-            if self.config.window:  # the next window's prior pose: exact again after a whole-graph solve
+            if self._windowed:  # the next window's prior pose: exact again after a whole-graph solve
                 keys = self.values.pose_keys[-self.config.window - 1:]
                 joint = self._marginals(keys)
                 self._pose_covs[keys] = joint.reshape(keys.size, 3, keys.size, 3)[np.arange(keys.size), :,
@@ -247,21 +247,21 @@ class GraphSLAM(EstimatorLifecycle):
             t = int(self.values.pose_keys[-1])
             self.belief.set(np.zeros(0, np.int64), self._marginals([t], window=window))
         else:
-            self._refresh_belief(all_points, window)
+            self._refresh_belief(all_points)
+
+    @property
+    def _windowed(self) -> bool:
+        """Window mode applies with known association; unknown association gates with the joint belief of the
+        whole graph (measured: a window's conservative belief there cost most of the loops and doubled the map)."""
+        return bool(self.config.window) and self._assoc.method == "known"
 
     def _solve_window(self, iterations: int) -> WindowSolve:
-        """Optimise the newest ``window`` poses and the landmarks they saw (plus, for unknown association, what the
-        belief needs: the landmarks near the newest pose and the tentative landmarks' source poses)."""
+        """Optimise the newest ``window`` poses and the landmarks they saw."""
         cfg = self.config
         free_poses = self.values.pose_keys[-cfg.window:]
         rb = self.graph.block("range_bearing") if "range_bearing" in self.graph.kinds() else None
         free_points = np.unique(rb.keys[1][np.isin(rb.keys[0], free_poses)]) if rb is not None else \
             np.zeros(0, np.int64)
-        if self._assoc.method != "known":
-            reach = cfg.sensor.max_range_m + cfg.candidate_margin_m + cfg.belief_margin_m
-            near = self.values.point_keys[self._reachable(self.index, self.values.poses[-1], reach)]
-            free_points = np.union1d(free_points, near)
-            free_poses = np.union1d(free_poses, self.tent_src)
         ws = solve_window(self.graph, self.values, free_poses, free_points, iterations, cfg.window_sightings)
         out = ws.values
         free = np.isin(out.pose_keys, free_poses)
@@ -270,7 +270,7 @@ class GraphSLAM(EstimatorLifecycle):
             self.values.points[self._point_rows(out.point_keys)] = out.points
         return ws
 
-    def _refresh_belief(self, all_points: bool = False, window: WindowSolve | None = None) -> None:
+    def _refresh_belief(self, all_points: bool = False) -> None:
         """The joint marginal of [newest pose, landmarks near it, tentative landmarks], from one factorisation.
 
         A tentative landmark is not in the graph; it is l = g(x_s, z) of its first sighting z from pose x_s, so its
@@ -286,7 +286,7 @@ class GraphSLAM(EstimatorLifecycle):
             near_keys = self.values.point_keys[self._reachable(t, pose, reach)]
         src = np.unique(self.tent_src[self.tent_src != t])
         pose_keys = np.concatenate([[t], src]).astype(np.int64)
-        m = self._marginals(pose_keys, near_keys, window)
+        m = self._marginals(pose_keys, near_keys)
         n_p, n_l, n_t = pose_keys.size, near_keys.size, self.tent_keys.size
         base = np.r_[0:3, 3 * n_p: 3 * n_p + 2 * n_l]  # [x_t, l_near] in m
         cov = np.empty((base.size + 2 * n_t,) * 2)
@@ -413,7 +413,7 @@ class GraphSLAM(EstimatorLifecycle):
             keys = np.concatenate([self.values.point_keys[near], self.tent_keys[near_t]])
             pts = np.concatenate([self.values.points[near], self.tent_pts[near_t]])
             if attempt == 0 and np.any(self.belief.rows(keys) < 0):
-                self._optimize(cfg.iterations)  # moved beyond the block since the last optimisation
+                self._optimize(cfg.iterations, local=True)  # moved beyond the block since the last optimisation
                 continue
             break
         return candidates_from_belief(pose, pts, keys, self.belief.select(keys), cfg.sensor.covariance), pts
@@ -563,7 +563,7 @@ class GraphSLAM(EstimatorLifecycle):
         """Joint marginal of poses a, b for the loop gate. Window mode (bounded work): the two poses' own marginals
         as independent (a's from when it was the newest), which widens the gate; verification and the robust
         kernel on loop factors guard it."""
-        if not self.config.window:
+        if not self._windowed:
             return self._marginals([a, b])
         cov = np.zeros((6, 6))
         cov[:3, :3] = self._pose_covs[self._pose_rows(np.array([a]))[0]]

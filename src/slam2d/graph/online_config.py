@@ -61,7 +61,8 @@ class GraphSLAMConfig:
     """0: every optimisation is over the whole graph. N > 0: bounded work per step -- the periodic optimisations
     solve only the newest N poses and the landmarks they saw, the rest held fixed (:mod:`slam2d.graph.
     sliding_window`); the whole graph is optimised after an accepted loop closure (at most once per ``full_every``
-    steps), on ``close_loop_now`` and in ``finalize`` (so the final estimate is the same optimum)."""
+    steps), on ``close_loop_now`` and in ``finalize`` (so the final estimate is the same optimum). Known association
+    only: with unknown association every optimisation stays whole-graph (its gates need the joint belief)."""
     window_iterations: int = 2
     """with ``window`` > 0: Levenberg-Marquardt iterations per window solve (warm-started; solves come often)."""
     window_sightings: int = 5
