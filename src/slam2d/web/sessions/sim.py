@@ -42,7 +42,7 @@ TASK_STEP, BIG_LOOP_AWAY_M, BIG_LOOP_NEAR_M, TASK_SETTLE_STEPS = 200, 10.0, 2.0,
 LIDAR_WORLDS = ("room", "warehouse")
 LIDAR_EVERY, LIDAR_GRID_EVERY, LIDAR_GRID_CELLS = 2, 20, 40_000
 #: poses re-optimised per step by the graph back end on these pages (``GraphSLAMConfig.window``)
-GRAPH_WINDOW = 25
+GRAPH_WINDOW = 20
 #: graph edges drawn at most (about): a long drive's thousands of factors would bury the map
 MAX_EDGES = 3000
 #: the loop page's "you are back" prompt: after driving farther than AWAY from the start, coming within NEAR of it
