@@ -37,11 +37,12 @@ async def _hello(ws: Any) -> dict[str, Any]:
 
 
 async def _next_json(ws: Any, kind: str) -> dict[str, Any]:
+    """The next message of this type; states pushed by the session (not replies to a command) are skipped."""
     while True:
         msg = await asyncio.wait_for(ws.recv(), RECV_TIMEOUT_S)
         if isinstance(msg, str):
             data = json.loads(msg)
-            if data["type"] == kind:
+            if data["type"] == kind and not data.get("pushed"):
                 return data
 
 
@@ -220,7 +221,7 @@ def test_a_long_jcbb_search_in_one_tab_never_delays_another(server: Any, artifac
                     cmd = {"type": "action", "name": "scramble"}  # a new scene: another full search
 
             searcher = asyncio.create_task(keep_searching())
-            while len(jcbb_times) < 3 and len(rtts) < 20000:  # across (at least) two whole searches
+            while sum(map(_truncated, jcbb_states)) < 3 and len(rtts) < 20000:  # across >= 2 whole long searches
                 t0 = time.perf_counter()
                 await b.send(json.dumps({"type": "action", "name": "step"}))
                 await _next_json(b, "state")
@@ -236,13 +237,17 @@ def test_a_long_jcbb_search_in_one_tab_never_delays_another(server: Any, artifac
         f"step round trips while another tab runs JCBB: n={len(rtts)} p50={1e3 * p50:.1f} ms p99={1e3 * p99:.1f} ms "
         f"max={1e3 * max(rtts):.1f} ms; JCBB replies: {', '.join(f'{t:.2f}' for t in jcbb_times)} s; step replies "
         f"during each search: {during}\n")
-    assert len(jcbb_times) >= 3
-    # searches 2.. started while the stepping loop ran: it was served during each of them
-    assert all(n >= 1 for n in during[1:-1]) and len(during) >= 3, during
-    for state in states:
-        assert any("stopped at its" in n and "time budget" in n for n in state["notices"]), state["notices"]
-        assert state["type"] == "state"
+    # the first scene (150 landmarks, 1.2 m) is a long search; a scrambled scene may be quick (it is not counted)
+    assert _truncated(states[0]), states[0]["notices"]
+    long_ones = [i for i, st in enumerate(states[:-1]) if _truncated(st) and i > 0]
+    assert len(long_ones) >= 1, during
+    # the stepping loop ran through each long search after the first: it was served while the search ran
+    assert all(during[i] >= 1 for i in long_ones), during
     assert proc.poll() is None
+
+
+def _truncated(state: dict[str, Any]) -> bool:
+    return any("stopped at its" in n and "time budget" in n for n in state["notices"])
 
 
 def test_a_flood_of_commands_is_rate_limited_visibly_and_hurts_nobody(server: Any) -> None:
@@ -307,3 +312,24 @@ def test_rate_limiter_token_bucket() -> None:
     assert lim.allow(0.05) is False  # half a token
     assert lim.allow(0.1) is True  # one token after 0.1 s at 10/s
     assert [lim.allow(100.0) for _ in range(4)] == [True, True, True, False]  # refills to the burst, no more
+
+
+def test_a_task_done_reaches_the_page_without_a_command(server: Any) -> None:
+    """The session notices a try-this task done while it works; the state goes out with the next frame, marked
+    pushed (the association task: a greedy method at >= 1 m pose uncertainty, then jcbb)."""
+    addr, _ = server
+
+    async def go() -> dict[str, Any]:
+        async with websockets.connect(f"ws://{addr}/ws/association?hz=20", compression=None) as a:
+            hello = await _hello(a)
+            assert hello["task"]["result"] is None
+            for name, value in (("landmarks", 20), ("pose_sigma_m", 1.2), ("method", "nn"), ("method", "jcbb")):
+                await a.send(json.dumps({"type": "param", "name": name, "value": value}))
+                await _next_json(a, "state")
+            while True:
+                data = json.loads(await _next_text(a))
+                if data["type"] == "state" and data.get("pushed"):
+                    return data
+
+    pushed = _run(go())
+    assert pushed["task"]["result"].startswith("Done: at 1.2 m pose uncertainty nn made")
