@@ -28,10 +28,11 @@ def _numbers(text: str) -> list[float]:
 
 
 def test_every_chapter_has_a_task_in_its_hello() -> None:
-    assert set(TASKS) == {p.slug for p in PAGES}
+    slugs = {p.slug for p in PAGES}
+    assert set(TASKS) <= slugs and {p.slug for p in PAGES if p.number <= 10} <= set(TASKS)  # chapters 0-10
     for p in PAGES:
         hello = p.make(0).hello()
-        assert hello["task"] == {"prompt": TASKS[p.slug], "result": None}
+        assert hello["task"] == ({"prompt": TASKS[p.slug], "result": None} if p.slug in TASKS else None)
 
 
 def test_maps_and_connections_tasks() -> None:
