@@ -438,3 +438,31 @@ def test_simulator_graph_view_toggle_draws_the_back_ends_graph() -> None:
     assert "view" not in s.state()["inactive"]
     sec = dict(s.sections())
     assert len(sec["GNOD"]) == 21 and len(sec["GEDG"]) >= 20  # a node per pose, at least the odometry chain
+
+
+def test_simulator_runs_the_lidar_back_end_and_draws_its_occupancy_grid() -> None:
+    from slam2d.graph.lidar import LidarSLAM
+    from slam2d.web.sessions.sim import LIDAR_EVERY, LIDAR_GRID_EVERY
+
+    s = PAGE_BY_SLUG["simulator"].make(0)
+    s.apply({"type": "param", "name": "paused", "value": True})
+    s.apply({"type": "param", "name": "drive", "value": "route"})
+    s.apply({"type": "param", "name": "estimator", "value": "lidar"})
+    assert isinstance(s.est, LidarSLAM) and s.sim.config.lidar.enabled and s.sim.config.lidar.every == LIDAR_EVERY
+    assert any(f"every {LIDAR_EVERY} steps" in n for n in s.notices)
+    for _ in range(2 * LIDAR_GRID_EVERY):
+        s.apply({"type": "action", "name": "step"})
+    sec = dict(s.sections())
+    built_at, prob, meta = s._grid  # type: ignore[misc]
+    assert built_at == 2 * LIDAR_GRID_EVERY
+    ref = s.est.occupancy_grid(float(meta[2]))  # the back end's own map, at the page's resolution
+    np.testing.assert_array_equal(sec["GRID"], ref.probability())
+    np.testing.assert_allclose(sec["GRDM"], [*ref.origin, ref.resolution], rtol=1e-12)
+    assert (prob > 0.65).any() and (prob < 0.35).any()  # walls occupied, the room between free
+    s.apply({"type": "action", "name": "step"})
+    assert s._grid[0] == built_at  # type: ignore[index]  # not rebuilt every step
+    # a world without walls: the lidar back end is refused with a message, the page carries on
+    s.apply({"type": "param", "name": "scenario", "value": "grid"})
+    assert s.values["estimator"] == "dead-reckoning" and any("room or warehouse" in n for n in s.notices)
+    s.apply({"type": "action", "name": "step"})
+    assert "GRID" not in dict(s.sections())

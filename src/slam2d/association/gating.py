@@ -277,6 +277,8 @@ def joint_nis(problem: Problem, obs: IntArray, cand: IntArray) -> float:
         return 0.0
     if len(np.unique(cand)) != len(cand):
         return float("nan")
+    if problem.S_joint is None:  # block diagonal: the sum of the pairs' own NIS (no dense 2K x 2K factorisation)
+        return float(np.sum(problem.d2[obs, cand]))
     nu = problem.nu[obs, cand].reshape(-1)
     c = problem.joint_block(cand, cand)
     try:

@@ -37,6 +37,7 @@ from slam2d.filters.ekf_kernels import (
     ekf_update,
     ekf_update_position,
     ekf_update_range_bearing,
+    ekf_update_range_bearing_batch,
     odometry_covariance_scalar,
     odometry_scalar,
     predict_landmarks,
@@ -66,6 +67,7 @@ __all__ = [
     "ekf_update",
     "ekf_update_position",
     "ekf_update_range_bearing",
+    "ekf_update_range_bearing_batch",
     "odometry_covariance_scalar",
     "odometry_scalar",
     "predict_landmarks",
@@ -74,6 +76,10 @@ __all__ = [
     "repair_covariance",
     "run_association",
 ]
+#: observations per joint update on steps with many of them (a few dozen is fastest: see the kernel's cost)
+UPDATE_BATCH = 64
+
+
 # ---------------------------------------------------------------------------------------------------- estimator
 @dataclass(frozen=True, slots=True, kw_only=True)
 class EKFConfig:
@@ -112,6 +118,12 @@ class EKFConfig:
     """NaN/inf or negative-range observations: raise ValueError naming the step, or drop them (counted)."""
     covariance_guard: Literal["raise", "repair"] = "repair"
     """when the covariance guard fires (see module docstring): re-raise, or repair P and retry once (counted)."""
+    batch_from: int = 32
+    """a step with at least this many matched observations applies them in joint updates of up to
+    ``UPDATE_BATCH`` (in observation order, each linearised at the mean the previous one left;
+    :func:`ekf_update_range_bearing_batch`): a few BLAS calls per batch instead of one pass over P per observation,
+    many times faster with hundreds of landmarks in view. Smaller steps get one update per observation (0: always
+    batch; a huge number: never)."""
     snapshot_full_cov: bool = False
     """put the full covariance P (a copy, O(N^2)) in the snapshot as ``full_cov``."""
 
@@ -121,6 +133,8 @@ class EKFConfig:
         _coerce(self.bad_observation, Literal["raise", "drop"], "EKFConfig.bad_observation")
         _coerce(self.covariance_guard, Literal["raise", "repair"], "EKFConfig.covariance_guard")
         check_positive(self, "motion_noise_scale", "gps_std_m")
+        if self.batch_from < 0:
+            raise ValueError(f"EKFConfig.batch_from must be >= 0 (got {self.batch_from})")
         check_nonnegative(self, "view_margin_m", "candidate_margin_m")
         try:
             self.tracks(known=False)
@@ -139,8 +153,8 @@ class EKFSLAM(EstimatorLifecycle):
     """EKF-SLAM estimator (implements the estimator protocol); the math lives in the module's pure kernels.
 
     Per step: predict; GPS fix (if any); associate the observations against the landmarks near the robot;
-    sequential updates in observation order; then the new landmarks are added (in observation order); then
-    landmarks missed too often while in view are removed.
+    updates in observation order (joint updates of ``UPDATE_BATCH`` when there are many); then the new landmarks
+    are added (in observation order); then landmarks missed too often while in view are removed.
     """
 
     def __init__(self, config: EKFConfig | None = None) -> None:
@@ -292,9 +306,15 @@ class EKFSLAM(EstimatorLifecycle):
         pos = {int(i): p for p, i in enumerate(self._ids)}
         used = np.flatnonzero(assign >= 0)
         sighted = np.array([pos[int(a)] for a in assign[used]], dtype=np.int64)
-        for o, j in zip(used, sighted, strict=True):  # one O(N^2) update per observation
-            self._guarded(lambda j=j, o=o: ekf_update_range_bearing(self._mu, self._P, j, z[o], self._R,
-                                                                     inplace=True))
+        if used.size >= max(self.config.batch_from, 2):
+            for c in range(0, used.size, UPDATE_BATCH):
+                sl = slice(c, c + UPDATE_BATCH)
+                self._guarded(lambda sl=sl: ekf_update_range_bearing_batch(self._mu, self._P, sighted[sl],
+                                                                           z[used[sl]], self._R, inplace=True))
+        else:
+            for o, j in zip(used, sighted, strict=True):  # one O(N^2) update per observation
+                self._guarded(lambda j=j, o=o: ekf_update_range_bearing(self._mu, self._P, j, z[o], self._R,
+                                                                         inplace=True))
         if obs.descriptor is not None and self._desc is not None:
             count = self._tracks.hits[0].copy()
             for o, j in zip(used, sighted, strict=True):  # running mean, in observation order

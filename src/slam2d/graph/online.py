@@ -25,31 +25,30 @@ then are its point and all its factors added to the graph; a tentative landmark 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 import slam2d.association as association
-from slam2d.association import CLUTTER, NEW, AssociationConfig, Candidates, candidates_from_belief, resolve_method
-from slam2d.association.tracks import LandmarkTracks, TrackConfig, in_view
-from slam2d.config import check_nonnegative, check_positive
+from slam2d.association import CLUTTER, NEW, Candidates, candidates_from_belief, resolve_method
+from slam2d.association.tracks import LandmarkTracks, in_view
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, GraphView, LoopEvent
 from slam2d.frontend.loop_closure import LoopCloser
-from slam2d.frontend.place_recognition import PlaceRecognitionConfig, observation_points
+from slam2d.frontend.place_recognition import observation_points
 from slam2d.geometry import se2
 from slam2d.geometry.angles import angle_diff
 from slam2d.graph.factors import between_error_jacobians
 from slam2d.graph.graph import FactorGraph, Values
 from slam2d.graph.local_belief import LocalBelief
 from slam2d.graph.marginals import marginal_covariances
+from slam2d.graph.online_config import GraphSLAMConfig as GraphSLAMConfig
 from slam2d.graph.optimizer import Optimizer, OptimizerConfig
 from slam2d.graph.problem import chi2_per_dof
+from slam2d.graph.sliding_window import WindowSolve, solve_window
 from slam2d.log import Step
-from slam2d.models.motion import MotionNoise, odometry_factor
+from slam2d.models.motion import odometry_factor
 from slam2d.models.sensors import (
-    SensorConfig,
     range_bearing,
     range_bearing_inverse,
     range_bearing_inverse_jacobians,
@@ -60,80 +59,6 @@ Array = NDArray[np.float64]
 
 #: added to every odometry covariance before inverting it (see ``GraphSLAM.step``)
 ODOMETRY_FLOOR_VAR = 1e-8
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class GraphSLAMConfig:
-    """Online graph SLAM settings."""
-
-    motion: MotionNoise = field(default_factory=MotionNoise)
-    """odometry noise (filled from the log's metadata)."""
-    sensor: SensorConfig = field(default_factory=SensorConfig)
-    """range-bearing sensor noise and range (filled from the log's metadata)."""
-    association: AssociationConfig = field(default_factory=lambda: AssociationConfig(method="auto"))
-    """how observations are matched to landmarks. Default ``auto``: the source's ids when the data carry them, else
-    ``association.AUTO_WITHOUT_IDS`` (:func:`slam2d.association.resolve_method`)."""
-    optimize_every: int = 10
-    """re-optimise the whole graph every this many steps (and after every accepted loop closure)."""
-    iterations: int = 5
-    """Levenberg-Marquardt iterations per online optimisation (warm-started from the current estimate)."""
-    final_iterations: int = 50
-    """iterations of the optimisation run when the estimate is read after the last step (``finalize``)."""
-    loop_closure: bool = True
-    """detect loops by place recognition; when off, landmarks unseen for ``revisit_gap_steps`` are forgotten."""
-    revisit_gap_steps: int = 60
-    """with loop closure off: a landmark re-seen after this many steps counts as a new one."""
-    keyframe_every: int = 5
-    """steps between keyframes used for place recognition."""
-    place: PlaceRecognitionConfig = field(default_factory=PlaceRecognitionConfig)
-    """place recognition and verification."""
-    loop_gate_probability: float = 0.999
-    """a verified loop must agree with the current estimate at this chi-square probability (3 dof)."""
-    loop_robust_kernel: str = "cauchy"
-    """robust kernel on loop-closure factors: none, huber, cauchy or dcs."""
-    odometry_info_scale: float = 1.0
-    """multiply odometry information (> 1: overconfident odometry, the "2 m offset" puzzle)."""
-    loop_info_scale: float = 1.0
-    """multiply loop-closure information (< 1: a weak loop constraint)."""
-    confirm_after: int = 2
-    """unknown association: a new landmark is tentative (its sightings held aside, nothing in the graph) until it has
-    been associated this many times, counting its first sighting (1: every NEW observation is a landmark at once)."""
-    tentative_max_misses: int = 3
-    """a tentative landmark predicted well inside the sensor's view this many steps without a match is discarded with
-    its sightings (0: never). Divided by the sensor's ``detection_prob``, as in EKF-SLAM."""
-    view_margin_m: float = 0.5
-    """"well inside the view" means predicted range <= max_range_m - view_margin_m (and inside the field of view)."""
-    dynamic_test: bool = False
-    """the tracks' persistence rule: a tentative landmark whose sightings drift (a moving object) is discarded."""
-    candidate_margin_m: float = 3.0
-    """landmarks predicted within max_range_m + this (m) of the newest pose are association candidates."""
-    belief_margin_m: float = 10.0
-    """the joint [pose, landmarks] block used for association holds the landmarks within max_range_m +
-    candidate_margin_m + this (m) of the newest pose at the last optimisation; when the robot has moved so far that a
-    candidate is outside it, the graph is optimised early (which refreshes the block)."""
-
-    def __post_init__(self) -> None:
-        for n in ("optimize_every", "iterations", "final_iterations", "revisit_gap_steps", "keyframe_every"):
-            if getattr(self, n) < 1:
-                raise ValueError(f"GraphSLAMConfig.{n} must be >= 1 (got {getattr(self, n)})")
-        try:
-            self.tracks()
-        except ValueError as e:
-            raise ValueError(f"GraphSLAMConfig.{e}") from None
-        check_positive(self, "odometry_info_scale", "loop_info_scale")
-        check_nonnegative(self, "view_margin_m", "candidate_margin_m", "belief_margin_m")
-        if not 0 < self.loop_gate_probability < 1:
-            raise ValueError(f"GraphSLAMConfig.loop_gate_probability must be in (0, 1) (got "
-                             f"{self.loop_gate_probability})")
-        if self.loop_robust_kernel not in ("none", "huber", "cauchy", "dcs"):
-            raise ValueError(f"GraphSLAMConfig.loop_robust_kernel must be none, huber, cauchy or dcs "
-                             f"(got {self.loop_robust_kernel!r})")
-
-    def tracks(self) -> TrackConfig:
-        """The track rules of the tentative landmarks (a confirmed one leaves the tracks for the graph)."""
-        return TrackConfig(confirm_after=self.confirm_after, tentative_max_misses=self.tentative_max_misses,
-                           confirmed_max_misses=0, view_margin_m=self.view_margin_m,
-                           misses_per_sighting=self.sensor.misses_per_sighting, dynamic_test=self.dynamic_test)
 
 
 class GraphSLAM(EstimatorLifecycle):
@@ -178,6 +103,9 @@ class GraphSLAM(EstimatorLifecycle):
         self.loops_rejected = 0
         self.last_assignment = np.zeros(0, dtype=np.int64)
         self.optimizations = 0
+        # window mode: each pose's marginal covariance when it was the newest (the boundary priors of the window)
+        self._pose_covs = np.zeros((64, 3, 3))
+        self._last_full = 0
         self._lifecycle_reset()
 
     @property
@@ -229,8 +157,19 @@ class GraphSLAM(EstimatorLifecycle):
             if self._assoc.method != "known" and self.tent_keys.size:
                 drop = self._count_tentative_misses()
                 self._retire_tentatives(np.zeros_like(drop), drop)
-        if loop_added or t % cfg.optimize_every == 0:
+        if self._windowed:
+            # window mode: a loop waits for the next window solve (which folds it in) unless a whole-graph solve is
+            # due; window solves fall between keyframes, so loop detection and a solve rarely share a step
+            if loop_added and t - self._last_full >= cfg.full_every:
+                self._optimize(cfg.iterations * 4)
+            elif (t + cfg.optimize_every // 2) % cfg.optimize_every == 0:
+                self._optimize(cfg.window_iterations, local=True)
+        elif loop_added or t % cfg.optimize_every == 0:
             self._optimize(cfg.iterations * (4 if loop_added else 1))
+        if self._windowed:
+            if t >= len(self._pose_covs):
+                self._pose_covs = np.concatenate([self._pose_covs, np.zeros_like(self._pose_covs)])
+            self._pose_covs[t] = self.belief.pose_cov
 
     def estimate(self) -> Estimate:
         self._check_ready()
@@ -277,24 +216,59 @@ class GraphSLAM(EstimatorLifecycle):
                          self.values.point_keys.copy(), edges)
 
     # ------------------------------------------------------------------ internals
-    def _marginals(self, pose_keys: Any = (), point_keys: Any = ()) -> Array:
-        """Joint marginal covariance of the selected variables (poses first), reusing the optimiser's analysis."""
+    def _marginals(self, pose_keys: Any = (), point_keys: Any = (), window: WindowSolve | None = None) -> Array:
+        """Joint marginal covariance of the selected variables (poses first), reusing the optimiser's analysis; from
+        the local problem with boundary priors after a window solve."""
+        if window is not None:
+            return window.marginals(np.asarray(pose_keys, np.int64), np.asarray(point_keys, np.int64),
+                                    lambda keys: self._pose_covs[self._pose_rows(keys)])
         an = self.optimizer.analysis
         if an is None or not an.compatible(self.graph, self.values):
             an = None
         return marginal_covariances(self.graph, self.values, pose_keys, point_keys, analysis=an).joint
 
-    def _optimize(self, iterations: int, *, all_points: bool = False) -> None:
-        cfg = self.optimizer.config
-        if cfg.max_iterations != iterations:
-            self.optimizer.config = OptimizerConfig(method="lm", max_iterations=iterations)
-        self.values, _ = self.optimizer.optimize(self.values)
+    def _optimize(self, iterations: int, *, all_points: bool = False, local: bool = False) -> None:
+        """Optimise the whole graph, or with ``local`` in window mode only the window (bounded work)."""
+        window = self._solve_window(iterations) if local and self._windowed else None
+        if window is None:
+            cfg = self.optimizer.config
+            if cfg.max_iterations != iterations:
+                self.optimizer.config = OptimizerConfig(method="lm", max_iterations=iterations)
+            self.values, _ = self.optimizer.optimize(self.values)
+            self._last_full = self.index
+            if self._windowed:  # the next window's prior pose: exact again after a whole-graph solve
+                keys = self.values.pose_keys[-self.config.window - 1:]
+                joint = self._marginals(keys)
+                self._pose_covs[keys] = joint.reshape(keys.size, 3, keys.size, 3)[np.arange(keys.size), :,
+                                                                                   np.arange(keys.size), :]
         self.optimizations += 1
         # refresh the uncertainty used by association (landmarks only when it is not the oracle) and the loop gate
         if self._assoc.method == "known":
-            self.belief.set(np.zeros(0, np.int64), self._marginals([int(self.values.pose_keys[-1])]))
+            t = int(self.values.pose_keys[-1])
+            self.belief.set(np.zeros(0, np.int64), self._marginals([t], window=window))
         else:
             self._refresh_belief(all_points)
+
+    @property
+    def _windowed(self) -> bool:
+        """Window mode applies with known association; unknown association gates with the joint belief of the
+        whole graph (measured: a window's conservative belief there cost most of the loops and doubled the map)."""
+        return bool(self.config.window) and self._assoc.method == "known"
+
+    def _solve_window(self, iterations: int) -> WindowSolve:
+        """Optimise the newest ``window`` poses and the landmarks they saw."""
+        cfg = self.config
+        free_poses = self.values.pose_keys[-cfg.window:]
+        rb = self.graph.block("range_bearing") if "range_bearing" in self.graph.kinds() else None
+        free_points = np.unique(rb.keys[1][np.isin(rb.keys[0], free_poses)]) if rb is not None else \
+            np.zeros(0, np.int64)
+        ws = solve_window(self.graph, self.values, free_poses, free_points, iterations, cfg.window_sightings)
+        out = ws.values
+        free = np.isin(out.pose_keys, free_poses)
+        self.values.poses[self._pose_rows(out.pose_keys[free])] = out.poses[free]
+        if out.point_keys.size:
+            self.values.points[self._point_rows(out.point_keys)] = out.points
+        return ws
 
     def _refresh_belief(self, all_points: bool = False) -> None:
         """The joint marginal of [newest pose, landmarks near it, tentative landmarks], from one factorisation.
@@ -439,7 +413,7 @@ class GraphSLAM(EstimatorLifecycle):
             keys = np.concatenate([self.values.point_keys[near], self.tent_keys[near_t]])
             pts = np.concatenate([self.values.points[near], self.tent_pts[near_t]])
             if attempt == 0 and np.any(self.belief.rows(keys) < 0):
-                self._optimize(cfg.iterations)  # moved beyond the block since the last optimisation
+                self._optimize(cfg.iterations, local=True)  # moved beyond the block since the last optimisation
                 continue
             break
         return candidates_from_belief(pose, pts, keys, self.belief.select(keys), cfg.sensor.covariance), pts
@@ -565,11 +539,7 @@ class GraphSLAM(EstimatorLifecycle):
         """Run the configured association method (every observation is NEW when there is no candidate)."""
         if cands.ids.size == 0:
             return np.full(len(obs), NEW, dtype=np.int64)
-        assoc_fn = getattr(association, "associate", None)
-        if assoc_fn is None:
-            raise ValueError("not yet implemented: association method "
-                             f"{self._assoc.method!r} needs slam2d.association.associate")
-        return np.asarray(assoc_fn(obs, cands, self._assoc, rng=self.rng).assignment, dtype=np.int64)
+        return np.asarray(association.associate(obs, cands, self._assoc, rng=self.rng).assignment, dtype=np.int64)
 
     def _remember_keyframe(self, t: int, z: Array) -> None:
         self.loops.add_keyframe(t, *observation_points(z, self.config.sensor.covariance))
@@ -578,8 +548,7 @@ class GraphSLAM(EstimatorLifecycle):
         """Try to close a loop at pose ``t``; an accepted one enters the graph as a robust between factor."""
         cfg = self.config
         pts, covs = observation_points(z, cfg.sensor.covariance)
-        found = self.loops.try_close(t, pts, covs, self._pose_of, lambda a, b: self._marginals([a, b]),
-                                     add_keyframe=add_keyframe)
+        found = self.loops.try_close(t, pts, covs, self._pose_of, self._loop_joint_cov, add_keyframe=add_keyframe)
         for c in found:
             self.new_loops.append(c.event)
             self.loops_accepted += c.accepted
@@ -589,6 +558,17 @@ class GraphSLAM(EstimatorLifecycle):
                 kernel = None if cfg.loop_robust_kernel == "none" else cfg.loop_robust_kernel
                 self.graph.add_between([c.a], [t], c.T_a_b[None], info[None], robust=kernel)
         return any(c.accepted for c in found)
+
+    def _loop_joint_cov(self, a: int, b: int) -> Array:
+        """Joint marginal of poses a, b for the loop gate. Window mode (bounded work): the two poses' own marginals
+        as independent (a's from when it was the newest), which widens the gate; verification and the robust
+        kernel on loop factors guard it."""
+        if not self._windowed:
+            return self._marginals([a, b])
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = self._pose_covs[self._pose_rows(np.array([a]))[0]]
+        cov[3:, 3:] = self._pose_covs[self._pose_rows(np.array([b]))[0]] if b != self.index else self.belief.pose_cov
+        return cov
 
     def _pose_of(self, key: int) -> Array:
         return self.values.poses[np.searchsorted(self.values.pose_keys, key)]

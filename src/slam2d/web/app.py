@@ -69,6 +69,29 @@ def parse_command(data: str | bytes | None) -> dict[str, Any]:
     return msg
 
 
+#: commands one page may send: bursts of RATE_BURST, RATE_PER_S per second sustained; the rest are dropped with a
+#: visible message (a stuck key repeat or a script flooding the socket must not queue minutes of work)
+RATE_PER_S, RATE_BURST = 50.0, 100
+
+
+class RateLimiter:
+    """Token bucket: ``allow(now)`` is True while tokens last; ``burst`` tokens, refilled at ``per_s`` per second."""
+
+    def __init__(self, per_s: float = RATE_PER_S, burst: int = RATE_BURST) -> None:
+        self.per_s, self.burst = per_s, float(burst)
+        self.tokens = float(burst)
+        self.last: float | None = None
+
+    def allow(self, now: float) -> bool:
+        if self.last is not None:
+            self.tokens = min(self.burst, self.tokens + max(0.0, now - self.last) * self.per_s)
+        self.last = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+
 class Connection:
     """One websocket: a receiver task applying commands, a sender loop advancing the session and sending frames."""
 
@@ -79,6 +102,9 @@ class Connection:
         # stalls the event loop or another tab); commands wait for the step in progress
         self.session_lock = asyncio.Lock()
         self.closed = False
+        self.limiter = RateLimiter()
+        self.dropped = 0  # commands dropped since the last rate-limit message
+        self.dropped_notice_at = -float("inf")
 
     async def send_json(self, obj: dict[str, Any]) -> None:
         async with self.lock:
@@ -90,6 +116,16 @@ class Connection:
             if msg["type"] == "websocket.disconnect":
                 self.closed = True
                 return
+            now = time.monotonic()
+            if not self.limiter.allow(now):
+                self.dropped += 1
+                if now - self.dropped_notice_at >= 1.0:  # one message per second, not one per dropped command
+                    self.dropped_notice_at = now
+                    await self.send_json({"type": "error", "message": (
+                        f"too many commands: {self.dropped} dropped (a page may send {RATE_PER_S:g} per second, "
+                        f"bursts of {RATE_BURST}); the session carries on")})
+                    self.dropped = 0
+                continue
             try:
                 cmd = parse_command(msg.get("text") if msg.get("text") is not None else msg.get("bytes"))
                 async with self.session_lock:
@@ -104,9 +140,11 @@ class Connection:
             if reply is not None:
                 await self.send_json(reply)
 
-    def _tick(self, dt: float, seq: int) -> bytes:
+    def _tick(self, dt: float, seq: int) -> tuple[bytes, dict[str, Any] | None]:
+        """Advance and draw; plus the state when advancing changed it (a task done, a notice)."""
         self.session.advance(dt)
-        return encode_frame(seq, self.session.sections())
+        state = self.session.state() if self.session.take_state_change() else None
+        return encode_frame(seq, self.session.sections()), state
 
     async def sender(self) -> None:
         period = 1.0 / self.hz
@@ -116,10 +154,12 @@ class Connection:
         while not self.closed:
             now = time.perf_counter()
             async with self.session_lock:
-                frame = await self.worker.run(self._tick, min(now - last, 0.5), seq)
+                frame, state = await self.worker.run(self._tick, min(now - last, 0.5), seq)
             last = now
             async with self.lock:
                 await self.ws.send_bytes(frame)
+            if state is not None:  # "pushed": not a reply to a command
+                await self.send_json(_nan_safe({**state, "pushed": True}))
             seq += 1
             nxt += period
             delay = nxt - time.perf_counter()

@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import slam2d.web.tasks as web_tasks
 from slam2d.web.checks import CHECKS
 from slam2d.web.sessions import AssociationSession, FeaturesSession, GraphSession, MapsSession, Session, SimSession
 from slam2d.web.sessions.warehouse import WarehouseSession
@@ -19,9 +20,10 @@ class Page:
     build: Callable[[int], Session]
 
     def make(self, seed: int) -> Session:
-        """A new session for this page (with the chapter's check question)."""
+        """A new session for this page (with the chapter's check question and try-this task)."""
         session = self.build(seed)
         session.check = CHECKS.get(self.slug)
+        session.task = web_tasks.TASKS.get(self.slug)
         return session
 
 

@@ -62,6 +62,7 @@ class AssociationSession(Session):
         ]
         super().__init__(params, seed)
         self.actions = (("scramble", "scramble"),)
+        self._greedy: tuple[str, int, int] | None = None
         self.rng = np.random.default_rng(int(self.values["seed"]))
         self._draw_scene()
 
@@ -119,6 +120,24 @@ class AssociationSession(Session):
                                 "the best.")
         self.result = res
         self.cands = cands
+        self._watch_task(method)
+
+    def _watch_task(self, method: str) -> None:
+        """Wrong matches with a greedy method at >= 1 m pose uncertainty, then the same with JCBB."""
+        if float(self.values["pose_sigma_m"]) < 1.0:
+            return
+        a = np.asarray(self.result.assignment)
+        matched = a >= 0
+        wrong = int((matched & (a != self.obs.landmark_id)).sum())
+        if method in ("nn", "mahalanobis"):
+            self._greedy = (method, wrong, int(matched.sum()))
+        elif method == "jcbb" and self._greedy is not None:
+            g, w0, m0 = self._greedy
+            cut = " (stopped at its time budget: the best found so far)" if self.result.truncated else ""
+            self.complete_task(f"Done: at {float(self.values['pose_sigma_m']):g} m pose uncertainty {g} made {w0} "
+                               f"wrong of {m0} matches; jcbb made {wrong} wrong of {int(matched.sum())}{cut}. JCBB "
+                               "accepts only matches that are jointly consistent: one shared pose error must explain "
+                               "them all.")
 
     def rows(self) -> list[str]:
         method = self.values["method"]

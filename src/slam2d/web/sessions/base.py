@@ -26,6 +26,32 @@ MAX_PATH_POINTS = 1500
 HEAT_MAX = 96
 
 
+class PathBuffer:
+    """A growing path of poses (T, 3): amortised O(1) ``append``; ``np.asarray`` gives the filled rows as a view
+    (a list of arrays would be copied into a new array on every frame)."""
+
+    def __init__(self, first: Any) -> None:
+        self._a = np.zeros((1024, 3))
+        self._n = 0
+        self.append(first)
+
+    def append(self, pose: Any) -> None:
+        if self._n == len(self._a):
+            self._a = np.concatenate([self._a, np.zeros_like(self._a)])
+        self._a[self._n] = pose
+        self._n += 1
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, i: Any) -> Any:
+        return self._a[: self._n][i]
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> Array:
+        view = self._a[: self._n]
+        return view.astype(dtype) if dtype is not None else (view.copy() if copy else view)
+
+
 def downsample(points: Array, limit: int = MAX_PATH_POINTS) -> Array:
     """At most ``limit`` rows, evenly spaced, always keeping the last one (the current pose)."""
     n = len(points)
@@ -98,6 +124,23 @@ class Session:
         self.actions: tuple[tuple[str, str], ...] = ()
         self.keys_down: set[str] = set()
         self.check: Check | None = None
+        self.task: str | None = None  # the chapter's "Try this" prompt (slam2d.web.tasks)
+        self.task_result: str | None = None  # written by the session when it sees the task done
+        self._state_changed = False
+
+    def complete_task(self, result: str) -> None:
+        """The task is done: show ``result`` (once; the page gets the new state with the next frame)."""
+        if self.task is not None and self.task_result is None:
+            self.task_result = result
+            self._state_changed = True
+
+    def push_state(self) -> None:
+        """Send the state with the next frame (e.g. a notice written while advancing, not by a command)."""
+        self._state_changed = True
+
+    def take_state_change(self) -> bool:
+        changed, self._state_changed = self._state_changed, False
+        return changed
 
     # --- commands -----------------------------------------------------------------------------------------------
     def apply(self, msg: Mapping[str, Any]) -> dict[str, Any] | None:
@@ -163,8 +206,10 @@ class Session:
 
     def state(self) -> dict[str, Any]:
         """What changes with commands but not every frame: values, notices, drawing bounds, rows that apply."""
+        task = None if self.task is None else {"prompt": self.task, "result": self.task_result}
         return {"type": "state", "values": dict(self.values), "notices": list(self.notices),
-                "bounds": list(self.bounds()), "rows": list(self.rows()), "inactive": list(self.inactive())}
+                "bounds": list(self.bounds()), "rows": list(self.rows()), "inactive": list(self.inactive()),
+                "task": task}
 
     def inactive(self) -> Sequence[str]:
         """Controls that change nothing under the current settings (the page greys them out)."""

@@ -54,6 +54,7 @@ class MapsSession(Session):
         ]
         super().__init__(params, seed)
         self.actions = (("reset", "reset"),)
+        self._layers_seen = {layer}
         self._build()
 
     def _build(self) -> None:
@@ -76,6 +77,22 @@ class MapsSession(Session):
     def on_param(self, name: str, value: Any, old: Any) -> None:
         if name == "seed":
             self._build()
+        if name == "layer":
+            self._layers_seen.add(str(value))
+            self._watch_task()
+
+    def _watch_task(self) -> None:
+        """maps: every representation shown; connections: the scans shown as an occupancy grid."""
+        layers = self.params["layer"].choices
+        if self.page == "maps" and self._layers_seen >= set(layers):
+            rows, cols = self.grid.shape
+            self.complete_task(f"Done: one drive, {len(layers)} maps. The landmark list holds "
+                               f"{len(self.sim.world.landmarks)} points, the scan map {len(self.points)} points, the "
+                               f"grid {rows} x {cols} cells; the topology keeps only places and their connections.")
+        elif self.page == "connections" and "occupancy" in self._layers_seen:
+            occ, free = int(self.grid.occupied().sum()), int(self.grid.free().sum())
+            self.complete_task(f"Done: {occ} cells occupied and {free} free so far, built from the same scans as the "
+                               "points: each beam clears the cells it passed and marks the one it hit.")
 
     def on_action(self, name: str) -> None:
         self._build()
@@ -147,6 +164,7 @@ class FeaturesSession(Session):
         ]
         super().__init__(params, seed)
         self.actions = (("renoise", "new noise"),)
+        self._low: tuple[float, int, float, float] | None = None
         self.sim = Simulator(ScenarioConfig(name="room", lidar=LidarConfig(enabled=False)), seed=seed)
         walls = self.sim.world.walls
         # a corner is a wall endpoint; each appears twice (two walls meet there)
@@ -179,6 +197,20 @@ class FeaturesSession(Session):
             self._renoise()
         else:
             self._detect()
+        if name == "threshold_rel":
+            self._watch_task(float(value))
+
+    def _watch_task(self, threshold: float) -> None:
+        """The threshold slid from low (<= 0.05) to high (>= 0.3): quote what it did to precision and recall."""
+        sc = self.score
+        if threshold <= 0.05:
+            self._low = (threshold, len(self.detected), sc.precision, sc.recall)
+        elif threshold >= 0.3 and self._low is not None:
+            t0, n0, p0, r0 = self._low
+            self.complete_task(f"Done: threshold {t0:g} -> {threshold:g}: corners found {n0} -> {len(self.detected)}, "
+                               f"precision {p0:.2f} -> {sc.precision:.2f}, recall {r0:.2f} -> {sc.recall:.2f}. A "
+                               "higher threshold keeps only strong responses: fewer false corners, and past some "
+                               "point real ones are lost too.")
 
     def on_action(self, name: str) -> None:
         self._renoise()

@@ -12,6 +12,7 @@ import numpy as np
 
 from slam2d.estimator import Estimate, Estimator, GraphView, SupportsGraphView, SupportsLoopClosure
 from slam2d.eval.trajectory import ate
+from slam2d.graph.lidar import LidarSLAM
 from slam2d.lab.registry import estimator_names, get_spec, make_estimator
 from slam2d.log import Step
 from slam2d.models.lidar import LidarConfig
@@ -21,10 +22,29 @@ from slam2d.sim.scenarios import SCENARIOS, ScenarioConfig
 from slam2d.sim.simulator import Simulator
 from slam2d.sim.trajectory import AutoExplorer, WaypointFollower
 from slam2d.web.params import Param
-from slam2d.web.sessions.base import Array, Sections, Session, abs_correlation, downsample, observation_covariances
+from slam2d.web.sessions.base import (
+    Array,
+    PathBuffer,
+    Sections,
+    Session,
+    abs_correlation,
+    downsample,
+    observation_covariances,
+)
 
 #: wall time one frame may spend stepping the simulation and estimator before the frame goes out anyway
 STEP_BUDGET_S = 0.05
+#: try-this tasks: the step at which runs are compared; the big loop's "away" and "back" distances from the start
+#: and the steps after the return before the correction is reported
+TASK_STEP, BIG_LOOP_AWAY_M, BIG_LOOP_NEAR_M, TASK_SETTLE_STEPS = 200, 10.0, 2.0, 20
+#: the lidar back end on the simulator page: its worlds, a scan every LIDAR_EVERY steps, its grid rebuilt every
+#: LIDAR_GRID_EVERY steps with at most about LIDAR_GRID_CELLS cells
+LIDAR_WORLDS = ("room", "warehouse")
+LIDAR_EVERY, LIDAR_GRID_EVERY, LIDAR_GRID_CELLS = 2, 20, 40_000
+#: poses re-optimised per step by the graph back end on these pages (``GraphSLAMConfig.window``)
+GRAPH_WINDOW = 20
+#: graph edges drawn at most (about): a long drive's thousands of factors would bury the map
+MAX_EDGES = 1500
 #: the loop page's "you are back" prompt: after driving farther than AWAY from the start, coming within NEAR of it
 RETURN_AWAY_M, RETURN_NEAR_M = 20.0, 6.0
 
@@ -104,6 +124,7 @@ class SimSession(Session):
         if page == "loop":
             self.actions += (("close_loop", "close loop now"),)
         self.error: str | None = None
+        self._ate_at: dict[str, float] = {}  # try-this bookkeeping that outlives a restart (estimator, noise)
         self._build()
 
     # --- construction -------------------------------------------------------------------------------------------
@@ -121,7 +142,9 @@ class SimSession(Session):
         extra: dict[str, Any] = {}
         if landmarks > 0 and "landmarks" in SCENARIOS[name].defaults:
             extra["landmarks"] = landmarks
-        return ScenarioConfig(name=name, sensor=sensor, motion=motion, lidar=LidarConfig(enabled=False), **extra)
+        # scans only for the lidar back end, every LIDAR_EVERY steps (scan matching costs more than a step)
+        lidar = LidarConfig(every=LIDAR_EVERY) if self.values["estimator"] == "lidar" else LidarConfig(enabled=False)
+        return ScenarioConfig(name=name, sensor=sensor, motion=motion, lidar=lidar, **extra)
 
     def _config_fields(self, name: str) -> set[str]:
         return {f.name for f in dataclasses.fields(get_spec(name).config_cls)}
@@ -133,15 +156,22 @@ class SimSession(Session):
             out["particles"] = int(self.values["particles"])
         if self.heat and "snapshot_full_cov" in fields:  # the EKF copies its full P only when asked (O(N^2))
             out["snapshot_full_cov"] = True
+        if "window" in fields:  # graph SLAM: bounded work per step, so a long drive keeps the page's frame rate
+            out["window"] = GRAPH_WINDOW
         if "loop_closure" in self.params and "loop_closure" in fields:
             out["loop_closure"] = bool(self.values["loop_closure"])
         return out
 
     def _build(self) -> None:
         """(Re)start the simulator and estimator from the current values (same seed: same world and noise)."""
-        self.sim = Simulator(self._scenario_config(), seed=int(self.values["seed"]))
         name = str(self.values["estimator"])
         self.start_error: str | None = None
+        if name == "lidar" and self.values["scenario"] not in LIDAR_WORLDS:
+            self.start_error = (f"estimator 'lidar' matches scans against walls: choose the world "
+                                f"{' or '.join(LIDAR_WORLDS)}; showing 'dead-reckoning' instead.")
+            name = self.values["estimator"] = "dead-reckoning"
+        self.sim = Simulator(self._scenario_config(), seed=int(self.values["seed"]))
+        self._grid: tuple[int, Array, Array] | None = None  # the lidar map: step built, probabilities, placement
         try:
             self.est: Estimator = make_estimator(name, self._estimator_overrides(name) or None,
                                                  log_metadata=self.sim.metadata())
@@ -157,12 +187,15 @@ class SimSession(Session):
         speed = float(self.sim.config.speed_mps or 1.0)
         self.explorer = AutoExplorer(speed, self.sim.rng["driver"])
         self.route = WaypointFollower(self.sim.waypoints, speed)
-        self.true_path: list[Array] = [self.sim.pose.copy()]
-        self.est_path: list[Array] = [np.asarray(self.snap.pose, dtype=np.float64).copy()]
+        self.true_path = PathBuffer(self.sim.pose)
+        self.est_path = PathBuffer(self.snap.pose)
         self.seen: set[int] = set()
         self.last_step: Step | None = None
         self.ghost: Array | None = None
         self._been_away = False
+        self._big_away = False
+        self._away_sigma = 0.0
+        self._return: tuple[int, Array, float, float, float] | None = None
         # break-it damage (same rules as slam2d.lab.breakit, applied step by step): its own random stream
         self.breakit_rng = np.random.default_rng([int(self.values["seed"]), 0xB4EA])
         ids = self.sim.world.landmark_ids
@@ -183,6 +216,9 @@ class SimSession(Session):
                          "no heat map for it.")
         if self.start_error:
             notes.append(self.start_error)
+        if isinstance(self.est, LidarSLAM):
+            notes.append(f"lidar: a scan every {LIDAR_EVERY} steps (scan matching costs more than a step); the "
+                         f"occupancy grid drawn is rebuilt from the keyframes every {LIDAR_GRID_EVERY} steps.")
         if self.error:
             notes.append(self.error)
         self.notices = notes
@@ -225,6 +261,7 @@ class SimSession(Session):
             return
         obs = self.last_step.observations
         before = self.trajectory().copy()
+        ate_before = self.ate_rmse()
         try:
             ok = bool(self.est.close_loop_now(obs.z[obs.landmark_id != -2]))
         except Exception as e:
@@ -235,6 +272,9 @@ class SimSession(Session):
         if ok:
             self.ghost = before  # drawn faintly: the path before the correction, for before/after
             self.notices = [n for n in self.notices if not n.startswith("try this")]
+            moved = float(np.max(np.hypot(*(self.trajectory()[:, :2] - before[:, :2]).T)))
+            self.complete_task(f"Done: the closure moved the estimated path by up to {moved:.2f} m (grey: before) "
+                               f"and the trajectory error went {ate_before:.3f} -> {self.ate_rmse():.3f} m.")
         self.notices.append("close loop: accepted — the correction spread along the trajectory" if ok else
                             "close loop: no verified loop from here (drive back near the start and try again)")
 
@@ -273,10 +313,68 @@ class SimSession(Session):
         self.last_step = step
         ids = raw.observations.landmark_id  # "seen" counts what the sensor saw, before any break-it damage
         self.seen.update(int(i) for i in np.unique(ids[ids >= 0]))
-        self.true_path.append(self.sim.pose.copy())
+        self.true_path.append(self.sim.pose)
         if self.page == "loop":
             self._watch_for_return()
-        self.est_path.append(np.asarray(self.snap.pose, dtype=np.float64).copy())
+        self.est_path.append(self.snap.pose)
+        if self.task is not None and self.task_result is None:
+            self._watch_task()
+
+    def _watch_task(self) -> None:
+        """Detect the page's try-this task (slam2d.web.tasks) from the run so far."""
+        page, i = self.page, self.sim.index
+        if page == "problem" and i == TASK_STEP:
+            self._ate_at[str(self.values["estimator"])] = self.ate_rmse()
+            if "dead-reckoning" in self._ate_at and len(self._ate_at) >= 2:
+                rows = ", ".join(f"{k} {v:.3f} m" for k, v in self._ate_at.items())
+                self.complete_task(f"Done: trajectory error at step {TASK_STEP}: {rows}. Without landmarks nothing "
+                                   "pulls the estimate back, so dead reckoning drifts without bound.")
+        elif page == "drift" and i == TASK_STEP // 2:
+            noise = float(self.values["motion_noise"])
+            self._ate_at[f"{noise:g}"] = self.ate_rmse()
+            low = [k for k in self._ate_at if float(k) == 0.0]
+            high = [k for k in self._ate_at if float(k) >= 10.0]
+            if low and high:
+                self.complete_task(f"Done: after {i} steps the ATE is {self._ate_at[low[0]]:.3f} m with no odometry "
+                                   f"noise and {self._ate_at[high[0]]:.3f} m with noise x{high[0]}: drift comes only "
+                                   "from the noise, and it accumulates.")
+        elif page == "fastslam" and self.snap.particles is not None and self.snap.particles.resampled:
+            m = len(self.snap.particles.poses)
+            if m <= 20:
+                self.complete_task(f"Done: at step {i} the weights of the {m} particles were uneven enough (N_eff "
+                                   f"{self.snap.particles.n_eff:.1f}, below {m / 2:g}) that the filter resampled: "
+                                   "heavy particles were copied, light ones dropped.")
+        elif page in ("ekf", "simulator"):
+            self._watch_big_loop()
+
+    def _watch_big_loop(self) -> None:
+        """The robot left its start by more than BIG_LOOP_AWAY_M and came back within BIG_LOOP_NEAR_M: record the
+        estimate, and TASK_SETTLE_STEPS later say what coming back corrected."""
+        start = self.true_path[0][:2]
+        d = float(np.hypot(*(self.sim.pose[:2] - start)))
+        if self._return is None:
+            if d > BIG_LOOP_AWAY_M:
+                self._big_away = True
+                self._away_sigma = max(self._away_sigma, self._position_sigma())
+            elif self._big_away and d < BIG_LOOP_NEAR_M:
+                self._return = (self.sim.index, self.trajectory().copy(), self._position_sigma(),
+                                self.numbers()["pose_error_m"], self.ate_rmse())
+            return
+        i0, traj0, s0, e0, a0 = self._return
+        if self.sim.index - i0 < TASK_SETTLE_STEPS:
+            return
+        moved = float(np.max(np.hypot(*(self.trajectory()[: len(traj0), :2] - traj0[:, :2]).T)))
+        how = (f"the estimated path itself moved by up to {moved:.2f} m: this back end re-estimates the past"
+               if moved > 1e-6 else "the path drawn so far did not move: a filter corrects the present pose and "
+               "the map, not the past")
+        self.complete_task(f"Done: back at the start at step {i0} (position uncertainty, 1 sigma, at most "
+                           f"{self._away_sigma:.3f} m while away). Over the next {TASK_SETTLE_STEPS} steps it went "
+                           f"{s0:.3f} -> {self._position_sigma():.3f} m and the "
+                           f"position error {e0:.3f} -> {self.numbers()['pose_error_m']:.3f} m; {how}.")
+
+    def _position_sigma(self) -> float:
+        cov = self.snap.pose_cov
+        return float(np.sqrt(np.trace(np.asarray(cov)[:2, :2]) / 2)) if cov is not None else float("nan")
 
     def _watch_for_return(self) -> None:
         """The loop page's try-this: notice when the robot comes back to where it started after a long drive, and
@@ -427,10 +525,27 @@ class SimSession(Session):
             h = self.heat_matrix()
             if h is not None:
                 out.append(("HEAT", h))
+        if isinstance(self.est, LidarSLAM) and self.sim.index > 0:
+            out.extend(self._lidar_grid())
         show_graph = self.show_graph or self.values["view"] == "graph"
         if show_graph and isinstance(self.est, SupportsGraphView):
             out.extend(graph_view_sections(self.est.graph_view()))
         return out
+
+
+    def _lidar_grid(self) -> Sections:
+        """The lidar back end's occupancy grid (its public ``occupancy_grid()``), rebuilt every LIDAR_GRID_EVERY
+        steps at a resolution that keeps it under LIDAR_GRID_CELLS cells."""
+        assert isinstance(self.est, LidarSLAM)
+        if self._grid is None or self.sim.index - self._grid[0] >= LIDAR_GRID_EVERY:
+            try:
+                x0, y0, x1, y1 = self.bounds()
+                res = max(0.1, float(np.sqrt((x1 - x0 + 2) * (y1 - y0 + 2) / LIDAR_GRID_CELLS)))
+                grid = self.est.occupancy_grid(res)
+            except ValueError:  # no keyframe yet
+                return []
+            self._grid = (self.sim.index, grid.probability(), np.array([*grid.origin, grid.resolution]))
+        return [("GRID", self._grid[1]), ("GRDM", self._grid[2])]
 
 
 def _lookup(keys: np.ndarray, values: Array, query: np.ndarray) -> Array:
@@ -448,13 +563,15 @@ def graph_view_sections(view: GraphView) -> Sections:
     pk = view.pose_keys
     poses = view.poses[:, :2]
     segs = []
-    for kind, keys in view.edges.items():
-        if kind not in ("between", "range_bearing", "point", "bearing", "range"):
-            continue  # unary factors (priors, GPS) have no edge to draw
-        k = np.asarray(keys, dtype=np.int64).reshape(-1, 2)
+    # unary factors (priors, GPS) have no edge to draw; beyond MAX_EDGES, every n-th edge (thinned before lookup)
+    drawn = {kind: keys for kind, keys in view.edges.items() if kind in ("between", "range_bearing", "point", "bearing",
+                                                                        "range")}
+    stride = max(1, sum(len(k) for k in drawn.values()) // MAX_EDGES)
+    for kind, keys in drawn.items():
+        k = np.asarray(keys, dtype=np.int64).reshape(-1, 2)[::stride]
         if kind == "between":
             segs.append(np.hstack([_lookup(pk, poses, k[:, 0]), _lookup(pk, poses, k[:, 1])]))
         else:
             segs.append(np.hstack([_lookup(pk, poses, k[:, 0]), _lookup(view.point_keys, view.points, k[:, 1])]))
     edges = np.vstack(segs) if segs else np.zeros((0, 4))
-    return [("GNOD", poses), ("GEDG", edges[:: max(1, len(edges) // 3000)])]
+    return [("GNOD", downsample(poses)), ("GEDG", edges)]

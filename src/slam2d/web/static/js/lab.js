@@ -17,7 +17,7 @@ const errorsEl = document.getElementById('errors');
 
 const lab = {
   page, frames: 0, bytes: 0, drawn: 0, fps: 0, recvFps: 0, seq: -1, decodeMs: 0, drawMs: 0,
-  pose: null, estPose: null, counters: {}, values: {}, notices: [], errors: [], hello: null, connected: false,
+  pose: null, estPose: null, counters: {}, values: {}, notices: [], errors: [], hello: null, connected: false, states: 0,
   rows: [], inactive: [], zoom: null, feedback: null,
   sections: {},
   send: (obj) => send(obj),
@@ -154,6 +154,31 @@ function buildCheck(check) {
   document.querySelector('main').appendChild(box);
 }
 
+function showTask(task) {
+  lab.task = task || null;
+  if (!task) return;
+  let box = document.getElementById('task');
+  if (!box) {
+    box = document.createElement('section');
+    box.id = 'task';
+    box.className = 'check task';
+    const h = document.createElement('h3');
+    h.textContent = 'Try this:';
+    const p = document.createElement('p');
+    p.id = 'task-prompt';
+    const r = document.createElement('p');
+    r.id = 'task-result';
+    box.append(h, p, r);
+    const check = document.getElementById('check');
+    const main = document.querySelector('main');
+    if (check) main.insertBefore(box, check); else main.appendChild(box);
+  }
+  document.getElementById('task-prompt').textContent = task.prompt;
+  const r = document.getElementById('task-result');
+  r.textContent = task.result || 'The page is watching for it.';
+  box.classList.toggle('done', Boolean(task.result));
+}
+
 function showFeedback(msg) {
   lab.feedback = msg;
   const fb = document.getElementById('check-feedback');
@@ -169,6 +194,7 @@ function showFeedback(msg) {
 function applyState(msg) {
   lab.values = msg.values || {};
   lab.notices = msg.notices || [];
+  showTask(msg.task);
   for (const [name, v] of Object.entries(lab.values)) {
     const input = document.getElementById(`ctl-${name}`);
     if (!input || document.activeElement === input) continue;
@@ -206,6 +232,7 @@ function onText(text) {
     buildCheck(msg.check);
     applyState(msg);
   } else if (msg.type === 'state') {
+    if (!msg.pushed) lab.states += 1;  // replies to accepted commands (tests wait on it instead of sleeping)
     applyState(msg);
   } else if (msg.type === 'feedback') {
     showFeedback(msg);
