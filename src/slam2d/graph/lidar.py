@@ -36,6 +36,7 @@ from slam2d.frontend.icp import ICPConfig, ICPTarget, icp, prepare_target
 from slam2d.geometry import se2
 from slam2d.graph.incremental import IncrementalConfig, IncrementalPoseGraph
 from slam2d.log import Scan, Step
+from slam2d.maps.layers import DYNAMIC, LayersConfig, LayerStats, MapLayers, PoseBuffer
 from slam2d.maps.occupancy import OccupancyConfig, OccupancyGrid
 
 Array = NDArray[np.float64]
@@ -128,6 +129,17 @@ class LidarSLAMConfig:
     """incremental pose-graph settings (in keyframes)."""
     map_resolution_m: float = 0.05
     """cell size of the occupancy map (m)."""
+    layers: LayersConfig | None = None
+    """lifelong mode (None: off): track against the static layer of :mod:`slam2d.maps.layers` instead of the
+    newest keyframes, keep dynamic points out of matching and out of that layer, and add a keyframe only where
+    none lies within ``coverage_m`` (memory follows the mapped area, not the time). Needs ``loop_closure=False``."""
+    coverage_m: float = 2.0
+    """lifelong mode: a scan becomes a keyframe only when no keyframe lies within this distance (m)."""
+    match_points: int = 200
+    """lifelong mode: at most this many points of a scan (evenly spread over its beams) are matched."""
+    min_inliers: int = 40
+    """lifelong mode: a match needs this many points within ``layers.inlier_m`` of the static layer, else the
+    odometry guess is kept (counted as a tracking failure)."""
 
     def __post_init__(self) -> None:
         check_positive(self, "keyframe_distance_m", "keyframe_angle_rad", "max_range_m", "min_sigma_xy_m",
@@ -140,6 +152,10 @@ class LidarSLAMConfig:
                   "loop_pair_keyframes"):
             if getattr(self, n) < 1:
                 raise ValueError(f"LidarSLAMConfig.{n} must be >= 1 (got {getattr(self, n)})")
+        if self.layers is not None and self.loop_closure:
+            raise ValueError("LidarSLAMConfig.layers needs loop_closure=False: a loop would move keyframes under a "
+                             "static layer that was built at the tracked poses")
+        check_positive(self, "coverage_m", "match_points", "min_inliers")
         if self.loop_map_keyframes < 0:
             raise ValueError(f"LidarSLAMConfig.loop_map_keyframes must be >= 0 (got {self.loop_map_keyframes})")
 
@@ -187,6 +203,12 @@ class LidarSLAM(EstimatorLifecycle):
         self.loops_accepted = 0
         self.loops_rejected = 0
         self.steps = 0
+        self.layers = None if self.config.layers is None else MapLayers(self.config.layers)
+        self._poses = PoseBuffer()  # lifelong mode: every pose (the keyframes never move there)
+        self._poses.append(self._pose)
+        self._kf_xy = np.zeros((0, 2))
+        self._labels: tuple[Array, NDArray[np.int8]] = (np.zeros((0, 2)), np.zeros(0, np.int8))
+        self.dynamic_points_total = 0
 
     @property
     def keyframe_poses(self) -> Array:
@@ -203,6 +225,9 @@ class LidarSLAM(EstimatorLifecycle):
         self._new_loops = ()
         guess = se2.compose(self._pose, step.odometry)
         pts = None if step.scan is None else scan_points(step.scan, cfg.min_range_m, cfg.max_range_m)
+        if self.layers is not None:
+            self._step_lifelong(step, guess, pts)
+            return
         if pts is None or len(pts) < cfg.icp.min_matches:
             self._place(step.index, guess)
             return
@@ -224,6 +249,74 @@ class LidarSLAM(EstimatorLifecycle):
         else:
             self._place(step.index, pose)
         self._cov = cov
+
+    # ------------------------------------------------------------------ lifelong mode
+    def _step_lifelong(self, step: Step, guess: Array, pts: Array | None) -> None:
+        """Track against the static layer, label the points, update both layers, keyframe by coverage."""
+        cfg, lay = self.config, self.layers
+        assert lay is not None
+        pose, cov = guess, self._cov
+        if pts is not None and len(pts) >= cfg.icp.min_matches:
+            if lay.integrations == 0:  # the first scan is the map: nothing to localise against yet
+                labels = lay.classify(pose, pts)
+                lay.integrate(pose, pts, labels, step.time_s, bootstrap=True)
+            else:
+                sel = pts[np.unique(np.linspace(0, len(pts) - 1, min(len(pts), cfg.match_points)).astype(np.int64))]
+                m = lay.match(sel[lay.classify(guess, sel) != DYNAMIC], guess)  # dynamic points never pull
+                if m.constrained and m.inliers >= cfg.min_inliers:
+                    pose, cov = m.pose, m.covariance
+                else:
+                    self.tracking_failures += 1
+                    cov = np.diag([0.2, 0.2, 0.05]) ** 2
+                labels = lay.classify(pose, pts)
+                lay.integrate(pose, pts, labels, step.time_s)
+            self._labels = (pts, labels)
+            self.dynamic_points_total += int(np.count_nonzero(labels == DYNAMIC))
+            near = self._kf_xy - pose[:2]
+            if not len(near) or float(np.min(np.einsum("ij,ij->i", near, near))) >= cfg.coverage_m**2:
+                self._add_coverage_keyframe(step.index, pose, pts, step.scan, cov)
+        self._pose, self._cov = pose, cov
+        self._poses.append(pose)
+
+    def _add_coverage_keyframe(self, index: int, pose: Array, pts: Array, scan: Scan | None, cov: Array) -> None:
+        """A keyframe on new ground, joined to the previous keyframe by the tracked relative pose."""
+        cfg = self.config
+        k = len(self._kf_step)
+        if self.graph is None:
+            self.graph = IncrementalPoseGraph(pose, cfg.graph)
+        else:
+            prev = self.graph.poses[-1]
+            floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
+            info = np.asarray(np.linalg.inv(_relative_cov(cov, float(prev[2])) + floor), np.float64)
+            self.graph.add_step(k, np.array([k - 1]), np.array([k]), se2.between(prev, pose)[None],
+                                info[None])
+        assert scan is not None
+        self._kf_step.append(index)
+        self._kf_points.append(pts)
+        self._kf_scans.append(scan)
+        self._kf_xy = np.vstack([self._kf_xy, pose[None, :2]])
+
+    def map_layers(self) -> MapLayers:
+        """The static and dynamic layers (lifelong mode only)."""
+        if self.layers is None:
+            raise ValueError("LidarSLAM.map_layers: lifelong mode is off (set LidarSLAMConfig.layers)")
+        return self.layers
+
+    def last_labels(self) -> tuple[Array, NDArray[np.int8]]:
+        """The last processed scan's robot-frame points (K,2) and their labels (K,) (lifelong mode; see
+        :meth:`slam2d.maps.layers.MapLayers.classify`)."""
+        return self._labels
+
+    def layer_stats(self) -> LayerStats:
+        """Counters of the lifelong mode (zeros when it is off)."""
+        lay = self.layers
+        if lay is None:
+            return LayerStats()
+        return LayerStats(keyframes=len(self._kf_step), static_cells=int(np.count_nonzero(lay.static)),
+                          promoted=lay.promoted, demoted=lay.demoted,
+                          dynamic_points_last=int(np.count_nonzero(self._labels[1] == DYNAMIC)),
+                          dynamic_points_total=self.dynamic_points_total, grid_bytes=lay.nbytes(),
+                          tracking_failures=self.tracking_failures)
 
     def _place(self, index: int, pose: Array) -> None:
         """A non-keyframe pose: stored relative to the newest keyframe."""
@@ -394,6 +487,8 @@ class LidarSLAM(EstimatorLifecycle):
     # ------------------------------------------------------------------ outputs
     def trajectory(self) -> Array:
         """Every pose so far (T+1,3): each scan's keyframe estimate composed with its pose relative to it."""
+        if self.layers is not None:
+            return self._poses.array()
         n = len(self._owner)
         if self._traj_cache is not None and self._traj_cache[0] == hash((n, self._version, len(self._kf_step))):
             return self._traj_cache[1]
@@ -420,7 +515,8 @@ class LidarSLAM(EstimatorLifecycle):
         )
 
     def finalize(self) -> None:
-        if self._lifecycle_finalize() and self.graph is not None and self.graph.num_poses > 1:
+        if self._lifecycle_finalize() and self.graph is not None and self.graph.num_poses > 1 \
+                and self.layers is None:
             self.graph.finalize()
             self._version += 1
             self._pose = self.trajectory()[-1].copy()
@@ -431,6 +527,8 @@ class LidarSLAM(EstimatorLifecycle):
         through windows and doors they would paint fans of free space outside)."""
         if self.graph is None:
             raise ValueError("LidarSLAM.occupancy_grid: no scan yet")
+        if self.layers is not None:
+            return self.layers.static_grid()
         poses = self.keyframe_poses
         world = self._world_points(0, len(poses))
         grid = OccupancyGrid.around(np.vstack([world, poses[:, :2]]), 1.0,
@@ -439,3 +537,4 @@ class LidarSLAM(EstimatorLifecycle):
         for p, s in zip(poses, self._kf_scans, strict=True):
             grid.update(p, s.ranges_m, s.angles_rad, min(s.max_range_m, self.config.max_range_m))
         return grid
+
