@@ -30,7 +30,7 @@ over points. The field is refreshed only around cells that joined or left the st
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -102,8 +102,8 @@ class LayersConfig:
 
     def __post_init__(self) -> None:
         check_positive(self, "resolution_m", "hit_logodds", "miss_logodds", "max_logodds", "occupied_logodds",
-                       "persist_s", "new_persist_s", "max_gap_s", "field_max_m", "dynamic_distance_m", "dynamic_decay_s",
-                       "match_cauchy_m", "inlier_m", "grow_margin_m",
+                       "persist_s", "new_persist_s", "max_gap_s", "field_max_m", "dynamic_distance_m",
+                       "dynamic_decay_s", "match_cauchy_m", "inlier_m", "grow_margin_m",
                        "prior_sigma_xy_m", "prior_sigma_theta_rad", "range_sigma_m")
         if not self.min_logodds < self.free_logodds < 0:
             raise ValueError(f"LayersConfig needs min_logodds < free_logodds < 0 (got {self.min_logodds}, "
@@ -134,20 +134,39 @@ class FieldMatch:
 class MapLayers:
     """The static and dynamic layers on one growing grid (see the module docstring)."""
 
-    _FILL: ClassVar[dict[str, float | bool]] = {"logodds": 0.0, "streak": -np.inf, "last_hit": -np.inf,
-                                                "static": False, "appeared": False, "dyn_seen": -np.inf}
+    # every per-cell array: fill value, dtype, trailing shape
+    _FILL: ClassVar[dict[str, tuple[float | bool, type, tuple[int, ...]]]] = {
+        "logodds": (0.0, np.float32, ()), "streak": (-np.inf, np.float32, ()), "last_hit": (-np.inf, np.float32, ()),
+        "static": (False, bool, ()), "appeared": (False, bool, ()), "dyn_seen": (-np.inf, np.float32, ()),
+        "mean": (0.0, np.float32, (2,)), "count": (0.0, np.float32, ()), "field": (np.inf, np.float32, ()),
+        "nearest": (-1, np.int32, ()), "normal": (0.0, np.float32, (2,)), "line": (False, bool, ())}
+
+    MEAN_CAP = 100.0
+    logodds: NDArray[np.float32]
+    streak: NDArray[np.float32]
+    last_hit: NDArray[np.float32]
+    static: NDArray[np.bool_]
+    appeared: NDArray[np.bool_]
+    dyn_seen: NDArray[np.float32]
+    mean: NDArray[np.float32]
+    count: NDArray[np.float32]
+    field: NDArray[np.float32]
+    nearest: NDArray[np.int32]
+    normal: NDArray[np.float32]
+    line: NDArray[np.bool_]
 
     def __init__(self, config: LayersConfig | None = None) -> None:
         self.config = config or LayersConfig()
         self.origin = np.zeros(2)
         self.shape = (0, 0)
-        self.logodds = np.zeros((0, 0), np.float32)
-        self.streak = np.zeros((0, 0), np.float32)  # time the cell's current run of hits began
-        self.last_hit = np.zeros((0, 0), np.float32)
-        self.static = np.zeros((0, 0), bool)
-        self.appeared = np.zeros((0, 0), bool)  # the current streak began in a cell known free
-        self.dyn_seen = np.zeros((0, 0), np.float32)  # last time a dynamic point hit the cell
-        self.field = np.zeros((0, 0), np.float32)  # distance to the nearest static cell (m), truncated
+        # logodds, streak (time the cell's current run of hits began), last_hit, static, appeared (the current
+        # streak began in a cell known free), dyn_seen (last time a dynamic point hit the cell), mean (mean hit
+        # offset from the cell centre, m: the map is sub-cell accurate), count (hits in that mean, capped),
+        # field (distance to the nearest static cell's mean point, m; inf beyond field_max_m), nearest (flat
+        # index of that cell, -1: none), normal and line (the static cell's surface normal, when its
+        # neighbourhood is a line; else the cell is matched point to point)
+        for name, (fill, dtype, trail) in self._FILL.items():
+            setattr(self, name, np.full((0, 0, *trail), fill, dtype=dtype))
         self.integrations = 0
         self.promoted = 0
         self.demoted = 0
@@ -189,17 +208,15 @@ class MapLayers:
         if shape[0] * shape[1] > 50_000_000:
             raise ValueError(f"MapLayers: a grid of {shape} cells is too large; raise LayersConfig.resolution_m")
         off = np.rint((cur_lo - new_lo) / res).astype(np.int64)  # (col, row) offset of the old grid
-        for name, fill in self._FILL.items():
+        if self.nearest.size:  # flat indices into the old grid -> into the new one
+            r, c = np.divmod(self.nearest.astype(np.int64), self.shape[1])
+            self.nearest = np.where(self.nearest >= 0, (r + off[1]) * shape[1] + c + off[0], -1).astype(np.int32)
+        for name, (fill, dtype, trail) in self._FILL.items():
             old = getattr(self, name)
-            new = np.full(shape, fill, dtype=old.dtype)
+            new: NDArray[Any] = np.full((*shape, *trail), fill, dtype=dtype)
             if old.size:
                 new[off[1]:off[1] + old.shape[0], off[0]:off[0] + old.shape[1]] = old
             setattr(self, name, new)
-        fm = self.config.field_max_m
-        field = np.full(shape, fm, dtype=np.float32)
-        if self.field.size:
-            field[off[1]:off[1] + self.field.shape[0], off[0]:off[0] + self.field.shape[1]] = self.field
-        self.field = field
         if self._dirty is not None:
             self._dirty = [self._dirty[0] + off[1], self._dirty[1] + off[0], self._dirty[2] + off[1],
                            self._dirty[3] + off[0]]
@@ -273,12 +290,27 @@ class MapLayers:
             st[new] = True
             self.promoted += int(np.unique(new).size)
             self._mark_dirty(new)
+        self._update_means(world[lab != DYNAMIC], hit[lab != DYNAMIC])
         dyn = hit[lab == DYNAMIC]
         self.dyn_seen.ravel()[dyn] = t
         self.integrations += 1
         self._since_refresh += 1
         if self._dirty is not None and (bootstrap or self._since_refresh >= cfg.field_refresh_every):
             self.refresh_field()
+
+    def _update_means(self, world: Array, hit: NDArray[np.int64]) -> None:
+        """Running mean of the hit points in each cell (the last ``MEAN_CAP`` hits weigh most)."""
+        if not len(hit):
+            return
+        u, inv = np.unique(hit, return_inverse=True)
+        off = world - self.cell_centres(hit)
+        cnt = np.bincount(inv, minlength=len(u)).astype(np.float32)
+        scan_mean = np.stack([np.bincount(inv, off[:, 0], len(u)), np.bincount(inv, off[:, 1], len(u))], -1) \
+            / cnt[:, None]
+        mean, count = self.mean.reshape(-1, 2), self.count.ravel()
+        total = np.minimum(count[u] + cnt, self.MEAN_CAP)
+        mean[u] += (scan_mean - mean[u]) * (cnt / total)[:, None]
+        count[u] = total
 
     def _mark_dirty(self, flat: NDArray[np.int64]) -> None:
         r, c = np.divmod(flat, self.shape[1])
@@ -305,51 +337,87 @@ class MapLayers:
         e0, f0, e1, f1 = max(a0 - m, 0), max(b0 - m, 0), min(a1 + m, ny), min(b1 + m, nx)
         occ = self.static[e0:e1, f0:f1]
         if occ.any():
-            dist = distance_transform_edt(~occ) * self.resolution
-            dist = np.minimum(dist, fm).astype(np.float32)
+            _, (ir, ic) = distance_transform_edt(~occ, return_indices=True)
+            near = ((ir + e0) * nx + ic + f0)[a0 - e0:a1 - e0, b0 - f0:b1 - f0].astype(np.int64)
+            rows, cols = np.mgrid[a0:a1, b0:b1]
+            centre = self.origin + (np.stack([cols, rows], axis=-1) + 0.5) * self.resolution
+            d = np.linalg.norm(self.cell_centres(near.ravel()).reshape(*near.shape, 2)
+                               + self.mean.reshape(-1, 2)[near] - centre, axis=-1)
+            self.field[a0:a1, b0:b1] = np.where(d <= fm, d, np.inf)
+            self.nearest[a0:a1, b0:b1] = np.where(d <= fm, near, -1)
         else:
-            dist = np.full(occ.shape, fm, dtype=np.float32)
-        self.field[a0:a1, b0:b1] = dist[a0 - e0:a1 - e0, b0 - f0:b1 - f0]
+            self.field[a0:a1, b0:b1] = np.inf
+            self.nearest[a0:a1, b0:b1] = -1
+        self._fit_normals(e0, f0, e1, f1)
+
+    def _fit_normals(self, r0: int, c0: int, r1: int, c1: int) -> None:
+        """Surface normal of every static cell in rows r0:r1, columns c0:c1, from the mean points of the static
+        cells within two cells of it: a line when the spread across is under a fifth of the spread along."""
+        r, c = np.nonzero(self.static[r0:r1, c0:c1])
+        if not len(r):
+            return
+        r, c = r + r0, c + c0
+        ny, nx = self.shape
+        res = self.resolution
+        sums = np.zeros((6, len(r)))  # n, x, y, xx, xy, yy (relative to the cell's centre)
+        for dr in range(-2, 3):
+            for dc in range(-2, 3):
+                rr, cc = r + dr, c + dc
+                ok = (rr >= 0) & (rr < ny) & (cc >= 0) & (cc < nx)
+                rr, cc = np.where(ok, rr, 0), np.where(ok, cc, 0)
+                ok &= self.static[rr, cc]
+                px = np.where(ok, dc * res + self.mean[rr, cc, 0], 0.0)
+                py = np.where(ok, dr * res + self.mean[rr, cc, 1], 0.0)
+                sums += np.stack([ok, px, py, px * px, px * py, py * py])
+        n = np.maximum(sums[0], 1.0)
+        mx, my = sums[1] / n, sums[2] / n
+        a, b, d = sums[3] / n - mx * mx, sums[4] / n - mx * my, sums[5] / n - my * my
+        phi = 0.5 * np.arctan2(2 * b, a - d)  # direction of the larger spread
+        root = np.sqrt(0.25 * (a - d) ** 2 + b * b)
+        lam_max, lam_min = 0.5 * (a + d) + root, 0.5 * (a + d) - root
+        self.normal[r, c] = np.stack([-np.sin(phi), np.cos(phi)], axis=-1)
+        self.line[r, c] = (sums[0] >= 3) & (lam_min < 0.04 * np.maximum(lam_max, 1e-12))
 
     # ------------------------------------------------------------------ localisation
     def match(self, points: ArrayLike, guess: ArrayLike) -> FieldMatch:
-        """Align robot-frame points (N,2) to the static layer from ``guess``: Gauss-Newton on the bilinear
-        distance field, Cauchy-weighted; points on the field's plateau (far from everything) pull nothing."""
+        """Align robot-frame points (N,2) to the static layer from ``guess`` (Gauss-Newton, Cauchy-weighted, with
+        the guess as a prior): each point is paired with the mean hit point of the static cell nearest to it
+        (a lookup, no search) and pulled along that cell's normal (point to line), or in both axes where the cell
+        is not part of a line (an upright). Points farther than ``field_max_m`` from the layer pull nothing."""
         cfg = self.config
         p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         g = np.asarray(guess, dtype=np.float64)
         x = g.copy()
         prior = np.diag([cfg.prior_sigma_xy_m**-2, cfg.prior_sigma_xy_m**-2, cfg.prior_sigma_theta_rad**-2])
         scale = cfg.range_sigma_m**-2
-        res, ny, nx = self.resolution, self.shape[0], self.shape[1]
-        field = self.field
+        near_all, mean_all = self.nearest.ravel(), self.mean.reshape(-1, 2)
+        normal_all, line_all = self.normal.reshape(-1, 2), self.line.ravel()
         h = np.zeros((3, 3))
-        f = np.zeros(0)
+        dist = np.full(len(p), np.inf)
         it = 0
         for it in range(1, cfg.match_iterations + 1):  # noqa: B007 - iteration count is reported
             c, s = np.cos(x[2]), np.sin(x[2])
-            qx = c * p[:, 0] - s * p[:, 1] + x[0]
-            qy = s * p[:, 0] + c * p[:, 1] + x[1]
-            u = (qx - self.origin[0]) / res - 0.5
-            v = (qy - self.origin[1]) / res - 0.5
-            j0, i0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
-            ok = (j0 >= 0) & (j0 < nx - 1) & (i0 >= 0) & (i0 < ny - 1)
-            j0, i0 = np.where(ok, j0, 0), np.where(ok, i0, 0)
-            fu, fv = u - j0, v - i0
-            f00, f01 = field[i0, j0], field[i0, j0 + 1]
-            f10, f11 = field[i0 + 1, j0], field[i0 + 1, j0 + 1]
-            f = (1 - fv) * ((1 - fu) * f00 + fu * f01) + fv * ((1 - fu) * f10 + fu * f11)
-            gx = ((1 - fv) * (f01 - f00) + fv * (f11 - f10)) / res
-            gy = ((1 - fu) * (f10 - f00) + fu * (f11 - f01)) / res
-            f = np.where(ok, f, cfg.field_max_m)
-            w = np.where(ok & (f < cfg.field_max_m), 1.0 / (1.0 + (f / cfg.match_cauchy_m) ** 2), 0.0)
-            jt = gx * (-s * p[:, 0] - c * p[:, 1]) + gy * (c * p[:, 0] - s * p[:, 1])
-            jac = np.stack([gx, gy, jt], axis=-1)
-            wj = jac * w[:, None]
-            h = scale * (jac.T @ wj)
-            e = x - g
-            e[2] = float(np.arctan2(np.sin(e[2]), np.cos(e[2])))
-            b = scale * (wj.T @ f) + prior @ e
+            q = np.stack([c * p[:, 0] - s * p[:, 1] + x[0], s * p[:, 0] + c * p[:, 1] + x[1]], axis=-1)
+            flat, inside = self.cell_index(q) if self.shape[0] else (np.zeros(len(p), np.int64),
+                                                                       np.zeros(len(p), bool))
+            k = np.where(inside, near_all[flat], -1)
+            ok = k >= 0
+            k = np.where(ok, k, 0)
+            e = q - (self.cell_centres(k) + mean_all[k])  # (N,2) point minus its target
+            dist = np.where(ok, np.hypot(e[:, 0], e[:, 1]), np.inf)
+            ok &= dist < cfg.field_max_m
+            line = line_all[k]
+            a1 = np.where(line[:, None], normal_all[k], [1.0, 0.0])  # residual directions
+            a2 = np.where(line[:, None], 0.0, np.array([0.0, 1.0]))
+            dq = np.stack([-s * p[:, 0] - c * p[:, 1], c * p[:, 0] - s * p[:, 1]], axis=-1)  # d q / d theta
+            r1, r2 = np.sum(a1 * e, axis=1), np.sum(a2 * e, axis=1)
+            w = np.where(ok, 1.0 / (1.0 + (dist / cfg.match_cauchy_m) ** 2), 0.0)
+            j1 = np.concatenate([a1, np.sum(a1 * dq, axis=1, keepdims=True)], axis=1)
+            j2 = np.concatenate([a2, np.sum(a2 * dq, axis=1, keepdims=True)], axis=1)
+            h = scale * ((j1 * w[:, None]).T @ j1 + (j2 * w[:, None]).T @ j2)
+            err = x - g
+            err[2] = float(np.arctan2(np.sin(err[2]), np.cos(err[2])))
+            b = scale * ((j1 * w[:, None]).T @ r1 + (j2 * w[:, None]).T @ r2) + prior @ err
             try:
                 dx = -np.linalg.solve(h + prior, b)
             except np.linalg.LinAlgError:
@@ -358,7 +426,7 @@ class MapLayers:
             x[2] = float(np.arctan2(np.sin(x[2]), np.cos(x[2])))
             if np.hypot(dx[0], dx[1]) < 1e-4 and abs(dx[2]) < 1e-5:
                 break
-        inl = int(np.count_nonzero(f < cfg.inlier_m))
+        inl = int(np.count_nonzero(dist < cfg.inlier_m))
         eig = np.linalg.eigvalsh(h) if np.all(np.isfinite(h)) else np.zeros(3)
         constrained = bool(eig[0] > 1e-6 * max(eig[-1], 1e-12) and eig[0] > 1.0)
         cov = np.asarray(np.linalg.inv(h + prior), np.float64)
@@ -397,7 +465,7 @@ class MapLayers:
 
     def nbytes(self) -> int:
         """Bytes held by the grids."""
-        return sum(getattr(self, n).nbytes for n in (*self._FILL, "field"))
+        return sum(getattr(self, n).nbytes for n in self._FILL)
 
 
 @dataclass(frozen=True, slots=True)
