@@ -180,6 +180,7 @@ class LidarSLAM(EstimatorLifecycle):
 
     def __init__(self, config: LidarSLAMConfig | None = None) -> None:
         self.config = config or LidarSLAMConfig()
+        self.layers: MapLayers | None = None
 
     # ------------------------------------------------------------------ lifecycle
     def reset(self, initial_pose: Array, *, rng: np.random.Generator) -> None:

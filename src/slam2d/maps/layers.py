@@ -66,10 +66,10 @@ class LayersConfig:
     persist_s: float = 5.0
     """a cell that was known free when its streak began (something appeared there: a forklift, a pallet put down)
     enters the static layer after a streak of sightings this long (s)."""
-    new_persist_s: float = 0.5
+    new_persist_s: float = 2.5
     """a cell never seen free before (unexplored ground: a wall seen for the first time) needs a streak this long
-    (s): two sightings at least, so that one noisy beam is not a wall, short enough that thin uprights (hit by
-    one beam now and then from afar) make it into the map while the robot passes."""
+    (s): longer than a forklift's side covers one cell (2 m long at >= 1 m/s), short enough that new walls join
+    the map while the robot approaches them."""
     max_gap_s: float = 1.5
     """a gap between two hits longer than this starts a new streak (s)."""
     endpoint_guard_cells: int = 2
