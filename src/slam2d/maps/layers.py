@@ -70,6 +70,12 @@ class LayersConfig:
     """a cell never seen free before (unexplored ground: a wall seen for the first time) needs a streak this long
     (s): longer than a forklift's side covers one cell (2 m long at >= 1 m/s), short enough that new walls join
     the map while the robot approaches them."""
+    bootstrap_s: float = 10.0
+    """for this long after the first scan, unexplored cells need only ``bootstrap_persist_s``: the first map is
+    seen from one place (far walls sampled a beam width apart) and a scan matched against it drags a little; cells
+    placed quickly, while the pose is still good, keep that early error from being built into the map (s)."""
+    bootstrap_persist_s: float = 0.3
+    """the streak an unexplored cell needs during ``bootstrap_s`` (s)."""
     max_gap_s: float = 1.5
     """a gap between two hits longer than this starts a new streak (s)."""
     endpoint_guard_cells: int = 2
@@ -102,8 +108,8 @@ class LayersConfig:
 
     def __post_init__(self) -> None:
         check_positive(self, "resolution_m", "hit_logodds", "miss_logodds", "max_logodds", "occupied_logodds",
-                       "persist_s", "new_persist_s", "max_gap_s", "field_max_m", "dynamic_distance_m",
-                       "dynamic_decay_s", "match_cauchy_m", "inlier_m", "grow_margin_m",
+                       "persist_s", "new_persist_s", "max_gap_s", "bootstrap_persist_s", "bootstrap_s", "field_max_m",
+                       "dynamic_distance_m", "dynamic_decay_s", "match_cauchy_m", "inlier_m", "grow_margin_m",
                        "prior_sigma_xy_m", "prior_sigma_theta_rad", "range_sigma_m")
         if not self.min_logodds < self.free_logodds < 0:
             raise ValueError(f"LayersConfig needs min_logodds < free_logodds < 0 (got {self.min_logodds}, "
@@ -168,6 +174,7 @@ class MapLayers:
         for name, (fill, dtype, trail) in self._FILL.items():
             setattr(self, name, np.full((0, 0, *trail), fill, dtype=dtype))
         self.integrations = 0
+        self.started_s = 0.0
         self.promoted = 0
         self.demoted = 0
         self._dirty: list[int] | None = None  # [row0, col0, row1, col1] of cells whose static flag changed
@@ -283,7 +290,10 @@ class MapLayers:
         self.appeared.ravel()[hit[fresh]] = before[fresh] <= cfg.free_logodds
         last[hit] = t
         lo[hit] = np.minimum(before + cfg.hit_logodds, cfg.max_logodds)
-        need = np.where(self.appeared.ravel()[hit], cfg.persist_s, cfg.new_persist_s)
+        if self.integrations == 0:
+            self.started_s = float(time_s)
+        new_need = cfg.bootstrap_persist_s if time_s - self.started_s < cfg.bootstrap_s else cfg.new_persist_s
+        need = np.where(self.appeared.ravel()[hit], cfg.persist_s, new_need)
         ready = (lo[hit] >= cfg.occupied_logodds) & ((t - streak[hit]) >= need)
         new = hit[~st[hit] & (ready | bootstrap)]
         if new.size:
@@ -360,8 +370,8 @@ class MapLayers:
         ny, nx = self.shape
         res = self.resolution
         sums = np.zeros((6, len(r)))  # n, x, y, xx, xy, yy (relative to the cell's centre)
-        for dr in range(-2, 3):
-            for dc in range(-2, 3):
+        for dr in range(-4, 5):
+            for dc in range(-4, 5):
                 rr, cc = r + dr, c + dc
                 ok = (rr >= 0) & (rr < ny) & (cc >= 0) & (cc < nx)
                 rr, cc = np.where(ok, rr, 0), np.where(ok, cc, 0)
