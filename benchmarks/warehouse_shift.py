@@ -14,7 +14,8 @@ odometry step, a few mrad of heading off, and every "unaligned" error far from t
 
 Printed every ``--report-min`` simulated minutes: online (unaligned, the pose ``estimate()`` returns at each step)
 position and heading error p99 so far, resident memory, keyframes, static cells, the estimator's per-scan latency
-(``step`` + ``estimate``, process time) p50/p99, and its CPU per simulated second. At the end: the whole-run
+(``step`` + ``estimate``, process time) p50/p99, its CPU per simulated second, and the static cells inside the
+forklifts' true boxes now / ghost static cells (see below). At the end: the whole-run
 numbers, static-layer cells inside the forklifts' true boxes (now) and static cells farther than 0.2 m from any true
 static structure (ghosts), and loops (the lifelong mode closes none: a revisit is localised against the map).
 """
@@ -106,6 +107,7 @@ def main() -> None:
                   f"| RSS {rss_mib():6.1f} MiB | keyframes {s.keyframes} | static cells {s.static_cells} | "
                   f"scan p50 {np.percentile(lat_ms[:n], 50):5.2f} p99 {np.percentile(lat_ms[:n], 99):5.2f} ms | "
                   f"CPU {lat_ms[:n].sum() / 1e3 / (n * dt):.3f} core | failures {s.tracking_failures} | "
+                  f"static cells in forklifts / ghosts {'/'.join(map(str, layer_truth(est, sim)))} | "
                   f"wall {time.perf_counter() - wall0:6.0f} s", flush=True)
     est.finalize()
     in_forklifts, ghosts = layer_truth(est, sim)
