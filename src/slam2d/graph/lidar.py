@@ -160,6 +160,14 @@ class LidarSLAMConfig:
             raise ValueError(f"LidarSLAMConfig.loop_map_keyframes must be >= 0 (got {self.loop_map_keyframes})")
 
 
+@dataclass(frozen=True, slots=True, kw_only=True)
+class LifelongLidarConfig(LidarSLAMConfig):
+    """:class:`LidarSLAMConfig` with the lifelong mode on (``--estimator lidar-lifelong``)."""
+
+    layers: LayersConfig | None = field(default_factory=LayersConfig)
+    loop_closure: bool = False
+
+
 def scan_points(scan: Scan, min_range: float, max_range: float) -> Array:
     """Endpoints (K,2) in the scan frame of beams that hit within [min_range, min(max_range, scan max)) m."""
     r = np.asarray(scan.ranges_m, dtype=np.float64)
