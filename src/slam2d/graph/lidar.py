@@ -20,6 +20,15 @@ Per step (one scan):
 
 Every scan's pose is its keyframe's estimate composed with its tracked pose relative to that keyframe, so the whole
 trajectory follows the graph. Steps without a scan are placed by odometry.
+
+**Lifelong mode** (``layers`` set, ``--estimator lidar-lifelong``): the map is the static layer of
+:mod:`slam2d.maps.layers`, and every scan is localised against it (a fixed number of points, a lookup per point, no
+search) from the odometry guess; points the layer labels dynamic take no part in the match and never enter the
+static layer (they go to the decaying dynamic layer). A scan becomes a keyframe only where no keyframe lies within
+``coverage_m`` (keyframe culling by coverage: in mapped ground nothing is added, so keyframes, the graph and the
+layers grow with the mapped area, never with time). Loop closure is off in this mode: a revisit is matched against
+the map it made the first time, which bounds the error by the map's own; correcting a map drawn with drift would
+need the layers re-drawn from moved keyframes, which this mode does not do.
 """
 
 from __future__ import annotations
