@@ -362,7 +362,8 @@ class MapLayers:
 
     def _fit_normals(self, r0: int, c0: int, r1: int, c1: int) -> None:
         """Surface normal of every static cell in rows r0:r1, columns c0:c1, from the mean points of the static
-        cells within two cells of it: a line when the spread across is under a fifth of the spread along."""
+        cells within four cells of it (far from the sensor one scan samples a wall a beam width apart): a line when
+        the spread across is under a fifth of the spread along (variance ratio 0.04)."""
         r, c = np.nonzero(self.static[r0:r1, c0:c1])
         if not len(r):
             return
