@@ -20,128 +20,37 @@ Per step (one scan):
 
 Every scan's pose is its keyframe's estimate composed with its tracked pose relative to that keyframe, so the whole
 trajectory follows the graph. Steps without a scan are placed by odometry.
+
+**Lifelong mode** (``layers`` set, ``--estimator lidar-lifelong``): the map is the static layer of
+:mod:`slam2d.maps.layers`, and every scan is localised against it (a fixed number of points, a lookup per point, no
+search) from the odometry guess; points the layer labels dynamic take no part in the match and never enter the
+static layer (they go to the decaying dynamic layer). A scan becomes a keyframe only where no keyframe lies within
+``coverage_m`` (keyframe culling by coverage: in mapped ground nothing is added, so keyframes, the graph and the
+layers grow with the mapped area, never with time). Loop closure is off in this mode: a revisit is matched against
+the map it made the first time, which bounds the error by the map's own; correcting a map drawn with drift would
+need the layers re-drawn from moved keyframes, which this mode does not do.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from slam2d.config import check_positive
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, LoopEvent
-from slam2d.frontend.correlative import CorrelativeConfig, correlative_match
-from slam2d.frontend.icp import ICPConfig, ICPTarget, icp, prepare_target
+from slam2d.frontend.correlative import correlative_match
+from slam2d.frontend.icp import ICPTarget, icp, prepare_target
 from slam2d.geometry import se2
-from slam2d.graph.incremental import IncrementalConfig, IncrementalPoseGraph
+from slam2d.graph.incremental import IncrementalPoseGraph
+from slam2d.graph.lidar_config import LidarSLAMConfig, LifelongLidarConfig
 from slam2d.log import Scan, Step
+from slam2d.maps.layers import DYNAMIC, LayerStats, MapLayers, PoseBuffer
 from slam2d.maps.occupancy import OccupancyConfig, OccupancyGrid
 
+__all__ = ["LidarSLAM", "LidarSLAMConfig", "LifelongLidarConfig", "scan_points"]
+
 Array = NDArray[np.float64]
-
-
-def _tracking_icp() -> ICPConfig:
-    return ICPConfig(max_correspondence_m=0.5, trim_fraction=0.85, tolerance=1e-4)
-
-
-def _loop_icp() -> ICPConfig:
-    return ICPConfig(max_correspondence_m=0.3, trim_fraction=0.8, max_iterations=50, tolerance=1e-4)
-
-
-@dataclass(frozen=True, slots=True, kw_only=True)
-class LidarSLAMConfig:
-    """Settings of the lidar SLAM estimator."""
-
-    keyframe_distance_m: float = 0.3
-    """tracked translation since the last keyframe that makes a new keyframe (m)."""
-    keyframe_angle_rad: float = 0.25
-    """tracked rotation since the last keyframe that makes a new keyframe (rad)."""
-    local_map_keyframes: int = 6
-    """newest keyframes whose points form the tracking target."""
-    max_range_m: float = 25.0
-    """beams longer than this are not matched (far points are sparse and noisy) (m)."""
-    min_range_m: float = 0.05
-    """beams shorter than this are not matched (the robot itself) (m)."""
-    icp: ICPConfig = field(default_factory=_tracking_icp)
-    """tracking scan matcher."""
-    min_fitness: float = 0.5
-    """a tracking match needs this fraction of the scan's points matched, else the odometry guess is kept."""
-    min_sigma_xy_m: float = 0.02
-    """floor on the standard deviation of a keyframe edge in x and y (ICP Hessians are over-confident) (m)."""
-    min_sigma_theta_rad: float = 0.005
-    """floor on the standard deviation of a keyframe edge in heading (rad)."""
-    loop_closure: bool = True
-    """search for loop closures (False: scan-matching odometry only)."""
-    loop_every: int = 2
-    """search loops every this many keyframes."""
-    loop_radius_m: float = 4.0
-    """old keyframes whose estimate lies within this distance of the new one are candidates (m)."""
-    loop_min_separation: int = 30
-    """keyframes closer than this in sequence are not candidates."""
-    loop_candidates: int = 4
-    """at most this many candidates (the nearest) are verified per search."""
-    loop_map_keyframes: int = 2
-    """a candidate's local map: its keyframe and this many on each side."""
-    correlative: CorrelativeConfig = field(default_factory=CorrelativeConfig)
-    """the correlative search of a loop candidate."""
-    loop_min_score: float = 0.5
-    """a loop's correlative score (mean likelihood of its points) must reach this."""
-    loop_max_ambiguity: float = 0.9
-    """a loop is rejected when a competing alignment outside the ambiguity radius scores this fraction of the
-    best (identical aisles, a corridor's axis)."""
-    loop_wide_window_m: float = 0.0
-    """a loop that passed every gate is searched again over +- this window (coarse only) and rejected when another
-    alignment there scores ``loop_wide_max_ambiguity`` of the best: identical aisles farther apart than the
-    verification window (m; 0: off). Off by default: measured at 4 m, threshold 0.9, it removed the false warehouse
-    loops (seeds 2, 3) but also most ACES corridor loops (0.048 -> 0.337 m); at 0.97 ACES 0.052 m and seed 2 still
-    had 2 false loops."""
-    loop_wide_max_ambiguity: float = 0.97
-    """the wide search's ambiguity threshold (its coarse scores are blurrier than the verification's)."""
-    loop_wide_step_cells: int = 6
-    """coarse translation step of that wide search, in ``correlative.resolution_m`` cells."""
-    loop_icp: ICPConfig = field(default_factory=_loop_icp)
-    """refinement of a loop's correlative match."""
-    loop_min_fitness: float = 0.6
-    """a loop's ICP refinement must match this fraction of the scan's points (at most ``loop_icp.trim_fraction``)."""
-    loop_max_rmse_m: float = 0.08
-    """a loop's point-to-line residual RMS must be below this (m)."""
-    loop_max_sigma_m: float = 0.05
-    """a loop's ICP covariance must constrain every direction: its largest translational standard deviation must
-    be below this (m). A corridor or aisle leaves the axis unconstrained, and a loop there would be a guess."""
-    loop_chi2: float = 16.27
-    """chi-square gate (3 dof, p = 0.001) on the ICP covariance between the correlative and the ICP result."""
-    loop_confirmations: int = 1
-    """a verified loop enters the graph only once another verified loop (from the same or a later keyframe within
-    ``loop_pair_keyframes``) agrees with it (0: each verified loop enters at once)."""
-    loop_pair_keyframes: int = 25
-    """how long (in keyframes) a verified loop waits for a partner."""
-    loop_pair_xy_m: float = 0.15
-    """two loops agree when their implied poses of the new keyframe differ by less than this (m) ..."""
-    loop_pair_theta_rad: float = 0.05
-    """... and this (rad)."""
-    loop_full_iterations: int = 5
-    """Gauss-Newton iterations on the whole keyframe graph after a step that added loops (0: the incremental
-    graph's local solve only)."""
-    graph: IncrementalConfig = field(default_factory=lambda: IncrementalConfig(
-        window=30, loop_neighbourhood=3, iterations=3, full_every=200, loop_kernel=None))
-    """incremental pose-graph settings (in keyframes)."""
-    map_resolution_m: float = 0.05
-    """cell size of the occupancy map (m)."""
-
-    def __post_init__(self) -> None:
-        check_positive(self, "keyframe_distance_m", "keyframe_angle_rad", "max_range_m", "min_sigma_xy_m",
-                       "min_sigma_theta_rad", "loop_radius_m", "loop_min_fitness", "loop_max_rmse_m", "loop_chi2",
-                       "loop_max_sigma_m", "map_resolution_m", "loop_pair_xy_m", "loop_pair_theta_rad",
-                       "min_fitness", "loop_min_score", "loop_max_ambiguity", "loop_wide_max_ambiguity")
-        if self.loop_confirmations not in (0, 1):
-            raise ValueError(f"LidarSLAMConfig.loop_confirmations must be 0 or 1 (got {self.loop_confirmations})")
-        for n in ("local_map_keyframes", "loop_every", "loop_candidates", "loop_min_separation",
-                  "loop_pair_keyframes"):
-            if getattr(self, n) < 1:
-                raise ValueError(f"LidarSLAMConfig.{n} must be >= 1 (got {getattr(self, n)})")
-        if self.loop_map_keyframes < 0:
-            raise ValueError(f"LidarSLAMConfig.loop_map_keyframes must be >= 0 (got {self.loop_map_keyframes})")
 
 
 def scan_points(scan: Scan, min_range: float, max_range: float) -> Array:
@@ -164,6 +73,7 @@ class LidarSLAM(EstimatorLifecycle):
 
     def __init__(self, config: LidarSLAMConfig | None = None) -> None:
         self.config = config or LidarSLAMConfig()
+        self.layers: MapLayers | None = None
 
     # ------------------------------------------------------------------ lifecycle
     def reset(self, initial_pose: Array, *, rng: np.random.Generator) -> None:
@@ -187,6 +97,12 @@ class LidarSLAM(EstimatorLifecycle):
         self.loops_accepted = 0
         self.loops_rejected = 0
         self.steps = 0
+        self.layers = None if self.config.layers is None else MapLayers(self.config.layers)
+        self._poses = PoseBuffer()  # lifelong mode: every pose (the keyframes never move there)
+        self._poses.append(self._pose)
+        self._kf_xy = np.zeros((0, 2))
+        self._labels: tuple[Array, NDArray[np.int8]] = (np.zeros((0, 2)), np.zeros(0, np.int8))
+        self.dynamic_points_total = 0
 
     @property
     def keyframe_poses(self) -> Array:
@@ -203,6 +119,9 @@ class LidarSLAM(EstimatorLifecycle):
         self._new_loops = ()
         guess = se2.compose(self._pose, step.odometry)
         pts = None if step.scan is None else scan_points(step.scan, cfg.min_range_m, cfg.max_range_m)
+        if self.layers is not None:
+            self._step_lifelong(step, guess, pts)
+            return
         if pts is None or len(pts) < cfg.icp.min_matches:
             self._place(step.index, guess)
             return
@@ -224,6 +143,74 @@ class LidarSLAM(EstimatorLifecycle):
         else:
             self._place(step.index, pose)
         self._cov = cov
+
+    # ------------------------------------------------------------------ lifelong mode
+    def _step_lifelong(self, step: Step, guess: Array, pts: Array | None) -> None:
+        """Track against the static layer, label the points, update both layers, keyframe by coverage."""
+        cfg, lay = self.config, self.layers
+        assert lay is not None
+        pose, cov = guess, self._cov
+        if pts is not None and len(pts) >= cfg.icp.min_matches:
+            if lay.integrations == 0:  # the first scan is the map: nothing to localise against yet
+                labels = lay.classify(pose, pts)
+                lay.integrate(pose, pts, labels, step.time_s, bootstrap=True)
+            else:
+                sel = pts[np.unique(np.linspace(0, len(pts) - 1, min(len(pts), cfg.match_points)).astype(np.int64))]
+                m = lay.match(sel[lay.classify(guess, sel) != DYNAMIC], guess)  # dynamic points never pull
+                if m.constrained and m.inliers >= cfg.min_inliers:
+                    pose, cov = m.pose, m.covariance
+                else:
+                    self.tracking_failures += 1
+                    cov = np.diag([0.2, 0.2, 0.05]) ** 2
+                labels = lay.classify(pose, pts)
+                lay.integrate(pose, pts, labels, step.time_s)
+            self._labels = (pts, labels)
+            self.dynamic_points_total += int(np.count_nonzero(labels == DYNAMIC))
+            near = self._kf_xy - pose[:2]
+            if not len(near) or float(np.min(np.einsum("ij,ij->i", near, near))) >= cfg.coverage_m**2:
+                self._add_coverage_keyframe(step.index, pose, pts, step.scan, cov)
+        self._pose, self._cov = pose, cov
+        self._poses.append(pose)
+
+    def _add_coverage_keyframe(self, index: int, pose: Array, pts: Array, scan: Scan | None, cov: Array) -> None:
+        """A keyframe on new ground, joined to the previous keyframe by the tracked relative pose."""
+        cfg = self.config
+        k = len(self._kf_step)
+        if self.graph is None:
+            self.graph = IncrementalPoseGraph(pose, cfg.graph)
+        else:
+            prev = self.graph.poses[-1]
+            floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
+            info = np.asarray(np.linalg.inv(_relative_cov(cov, float(prev[2])) + floor), np.float64)
+            self.graph.add_step(k, np.array([k - 1]), np.array([k]), se2.between(prev, pose)[None],
+                                info[None])
+        assert scan is not None
+        self._kf_step.append(index)
+        self._kf_points.append(pts)
+        self._kf_scans.append(scan)
+        self._kf_xy = np.vstack([self._kf_xy, pose[None, :2]])
+
+    def map_layers(self) -> MapLayers:
+        """The static and dynamic layers (lifelong mode only)."""
+        if self.layers is None:
+            raise ValueError("LidarSLAM.map_layers: lifelong mode is off (set LidarSLAMConfig.layers)")
+        return self.layers
+
+    def last_labels(self) -> tuple[Array, NDArray[np.int8]]:
+        """The last processed scan's robot-frame points (K,2) and their labels (K,) (lifelong mode; see
+        :meth:`slam2d.maps.layers.MapLayers.classify`)."""
+        return self._labels
+
+    def layer_stats(self) -> LayerStats:
+        """Counters of the lifelong mode (zeros when it is off)."""
+        lay = self.layers
+        if lay is None:
+            return LayerStats()
+        return LayerStats(keyframes=len(self._kf_step), static_cells=int(np.count_nonzero(lay.static)),
+                          promoted=lay.promoted, demoted=lay.demoted,
+                          dynamic_points_last=int(np.count_nonzero(self._labels[1] == DYNAMIC)),
+                          dynamic_points_total=self.dynamic_points_total, grid_bytes=lay.nbytes(),
+                          tracking_failures=self.tracking_failures)
 
     def _place(self, index: int, pose: Array) -> None:
         """A non-keyframe pose: stored relative to the newest keyframe."""
@@ -394,6 +381,8 @@ class LidarSLAM(EstimatorLifecycle):
     # ------------------------------------------------------------------ outputs
     def trajectory(self) -> Array:
         """Every pose so far (T+1,3): each scan's keyframe estimate composed with its pose relative to it."""
+        if self.layers is not None:
+            return self._poses.array()
         n = len(self._owner)
         if self._traj_cache is not None and self._traj_cache[0] == hash((n, self._version, len(self._kf_step))):
             return self._traj_cache[1]
@@ -420,7 +409,8 @@ class LidarSLAM(EstimatorLifecycle):
         )
 
     def finalize(self) -> None:
-        if self._lifecycle_finalize() and self.graph is not None and self.graph.num_poses > 1:
+        if self._lifecycle_finalize() and self.graph is not None and self.graph.num_poses > 1 \
+                and self.layers is None:
             self.graph.finalize()
             self._version += 1
             self._pose = self.trajectory()[-1].copy()
@@ -431,6 +421,8 @@ class LidarSLAM(EstimatorLifecycle):
         through windows and doors they would paint fans of free space outside)."""
         if self.graph is None:
             raise ValueError("LidarSLAM.occupancy_grid: no scan yet")
+        if self.layers is not None:
+            return self.layers.static_grid()
         poses = self.keyframe_poses
         world = self._world_points(0, len(poses))
         grid = OccupancyGrid.around(np.vstack([world, poses[:, :2]]), 1.0,

@@ -53,6 +53,8 @@ _BUILTIN: dict[str, tuple[str, str, str, str]] = {
               "online graph SLAM with place-recognition loop closures (sparse LM)"),
     "lidar": ("slam2d.graph.lidar", "LidarSLAMConfig", "LidarSLAM",
               "lidar SLAM: scan-to-local-map ICP, keyframes, correlative+ICP verified loops, incremental pose graph"),
+    "lidar-lifelong": ("slam2d.graph.lidar", "LifelongLidarConfig", "LidarSLAM",
+                       "lidar SLAM, lifelong: localise against a static layer, dynamic points filtered, bounded map"),
     "range-only-ekf": ("slam2d.filters.range_only_ekf", "RangeOnlyEKFConfig", "RangeOnlyEKF",
                        "range-only EKF-SLAM: beacons placed by delayed trilateration, gated scalar range updates"),
     "range-only-graph": ("slam2d.graph.range_only", "RangeOnlyGraphConfig", "RangeOnlyGraph",
