@@ -233,6 +233,13 @@ class Drone:
             self.tiles += len(msg.get("tiles", []))
         elif kind == "error":
             text = f"{msg.get('code')}: {msg.get('message')}"
+            if msg.get("code") == "not-registered":
+                # the server restarted under this connection (deltas queued in the socket reached it before any
+                # hello): not a refusal of our data; say hello again on a fresh connection and resend from the ack
+                self.log(f"drone {self.drone}: the server does not know this connection, saying hello again")
+                if self.welcomed:
+                    self._connect()
+                return
             self.errors.append(text)
             if msg.get("code") == "duplicate-drone":
                 raise DroneError(f"server {self.server} refused drone {self.drone}: {msg.get('message')}")
