@@ -45,7 +45,7 @@ typecheck: $(STAMP)
 	$(VENV)/bin/mypy
 
 pytest: $(STAMP) chromium
-	$(PY) -m pytest
+	$(PY) -m pytest --durations=25
 
 test: lint typecheck pytest
 
