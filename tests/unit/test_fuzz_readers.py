@@ -291,3 +291,17 @@ def test_carmen_reader_raises_only_log_format_error(lines, raw, compress, tmp_pa
         log.to_log()
     except LogFormatError as e:
         assert str(p) in str(e)
+
+
+@pytest.mark.parametrize(("fmt", "line"), [
+    ("isam", "EDGE2 0 1 1 1 1 1 3 1 0 1 1"),   # sqrt-information with a zero on its diagonal: singular
+    ("isam", "EDGE2 0 1 1 1 1 1 0 1 1 1 0"),   # found by the fuzz under random order: PD before, not after rotation
+    ("toro", "EDGE2 0 1 1 1 1 1 0 0 1 0 1e-20"),
+])
+def test_singular_information_is_a_format_error_with_its_line(fmt, line, tmp_path):
+    p = tmp_path / "g.txt"
+    p.write_text(("VERTEX_SE2 0 0 1\n" if fmt == "isam" else "VERTEX2 0 0 0 0\nVERTEX2 1 1 0 0\n") + line + "\n")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(GraphFormatError, match=r"g\.txt:\d+: .*positive definite"):
+            read_graph(p, fmt)

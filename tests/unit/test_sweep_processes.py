@@ -98,12 +98,14 @@ def test_dask_sweep_survives_a_killed_worker(tmp_path):
             f.close()
 
 
+# runs long enough (~0.4 s each) that the interrupt lands mid-sweep even when this test process is starved of CPU
+# (with 100 steps a loaded machine finished all 40 runs before the test saw the first records)
 SIGINT_SWEEP = """
 estimators = ["dead-reckoning"]
 scenarios = ["room"]
 seeds = 40
 [set]
-steps = 100
+steps = 1000
 """
 
 

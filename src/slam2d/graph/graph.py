@@ -143,7 +143,7 @@ def sqrt_information(information: ArrayLike, m: int, what: str) -> Array:
         raise GraphError(f"{what}: information of factor {int(np.flatnonzero(asym)[0])} is not symmetric")
     # batched Cholesky: numpy raises for the whole batch, so locate the offender with eigenvalues
     ev = np.linalg.eigvalsh(om)
-    notpd = ev[:, 0] <= 0
+    notpd = ~(ev[:, 0] > 1e-13 * ev[:, -1])  # numerically singular: Cholesky would fail (or be meaningless)
     if np.any(notpd):
         i = int(np.flatnonzero(notpd)[0])
         raise GraphError(f"{what}: information of factor {i} is not positive definite (eigenvalues {ev[i]})")

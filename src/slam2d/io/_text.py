@@ -164,6 +164,11 @@ def _convert(name: str, tag: str, rows: list[list[str]], nos: IntArray, n_int: i
     raise GraphFormatError(f"{name}:{int(nos[0])}: {tag}: could not convert the fields to numbers")  # pragma: no cover
 
 
+#: an information matrix whose smallest eigenvalue is below this fraction of its largest is singular for Cholesky
+#: in double precision (the same floor as :func:`slam2d.graph.graph.sqrt_information`)
+PD_RELATIVE_FLOOR = 1e-13
+
+
 def check_pd(name: str, tag: str, om: Array, lines: IntArray) -> None:
     """GraphFormatError naming the first line whose (N, m, m) information matrix is not positive definite."""
     if om.shape[0] == 0:
@@ -174,7 +179,7 @@ def check_pd(name: str, tag: str, om: Array, lines: IntArray) -> None:
         raise GraphFormatError(f"{name}:{int(lines[i])}: {tag} information entry above {MAX_INFORMATION:g} "
                                "(its products overflow in the solver)")
     ev = np.linalg.eigvalsh(om)
-    bad = ~(ev[:, 0] > 0)
+    bad = ~(ev[:, 0] > PD_RELATIVE_FLOOR * ev[:, -1])  # numerically singular fails Cholesky later: refuse it here
     if np.any(bad):
         i = int(np.flatnonzero(bad)[0])
         raise GraphFormatError(f"{name}:{int(lines[i])}: {tag} information matrix is not positive definite "

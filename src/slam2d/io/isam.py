@@ -66,6 +66,7 @@ def read_isam(path: str | os.PathLike[str], *, on_unknown: str = "warn") -> Grap
     T = measurement_frame_rotation(floats[:, 2])
     om = T @ om_i @ np.swapaxes(T, 1, 2)
     om = 0.5 * (om + np.swapaxes(om, 1, 2))
+    check_pd(name, "ODOMETRY", om, lines)  # again after the rotation: a borderline matrix can lose definiteness
     SL = _sqrt3(lm.floats[:, 2:])
     with np.errstate(over="ignore", invalid="ignore"):
         om_l = np.swapaxes(SL, 1, 2) @ SL

@@ -52,6 +52,7 @@ def read_toro(path: str | os.PathLike[str], *, on_unknown: str = "warn") -> Grap
     T = measurement_frame_rotation(e.floats[:, 2])
     om = T @ om_t @ np.swapaxes(T, 1, 2)
     om = 0.5 * (om + np.swapaxes(om, 1, 2))
+    check_pd(name, "EDGE2", om, e.lines)  # again after the rotation: a borderline matrix can lose definiteness
     g = FactorGraph()
     if e.ints.shape[0]:
         g.add_between(e.ints[:, 0], e.ints[:, 1], e.floats[:, :3], om)
