@@ -118,7 +118,13 @@ def test_sigint_then_rerun_finishes_only_the_missing_runs(tmp_path, capsys, monk
     store = out / "results.jsonl"
     cmd = [PY, "-m", "slam2d", "sweep", str(cfg), "--out", str(out), "--workers", "2", "--no-progress"]
     env = {**os.environ, "DASK_SCHEDULER_ADDRESS": ""}
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    # a program started with SIGINT ignored keeps ignoring it (as a background job should), and Python inherits an
+    # ignored SIGINT from its parent; this test process may have it ignored by the time it runs, so the child
+    # installs Python's own Ctrl-C handler first, as an interactive shell's child would have it
+    child = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+             "sys.argv = ['slam2d', *sys.argv[1:]]; runpy.run_module('slam2d', run_name='__main__')")
+    proc = subprocess.Popen([PY, "-c", child, *cmd[3:]], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env)
     try:
         _wait_for(lambda: store.exists() and len(store.read_bytes().splitlines()) >= 4, 600, "the first records")
         proc.send_signal(signal.SIGINT)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import concurrent.futures
 import socket
 import subprocess
 import sys
@@ -90,7 +91,9 @@ def test_ctrl_c_stops_the_lab_promptly_even_while_a_tab_searches(artifacts: Path
                 a.transport.abort()
                 b.transport.abort()
 
-        took = asyncio.run(open_tabs())
+        # in a thread of its own: a browser test earlier in the session may leave an event loop running here
+        with concurrent.futures.ThreadPoolExecutor(1) as ex:
+            took = ex.submit(lambda: asyncio.run(open_tabs())).result()
     finally:
         if proc.poll() is None:
             proc.kill()
