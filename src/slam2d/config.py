@@ -131,8 +131,19 @@ def from_dict(cls: type[C], data: Mapping[str, Any], *, where: str | None = None
     return cls(**kwargs)
 
 
+def _optional_config(tp: Any) -> type | None:
+    """The config class ``X`` of an annotation ``X | None``, else None."""
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        inner = [a for a in args if a is not type(None)]
+        if len(inner) == 1 and len(args) == 2 and isinstance(inner[0], type) and dataclasses.is_dataclass(inner[0]):
+            return inner[0]
+    return None
+
+
 def leaf_paths(cls: type, prefix: str = "") -> dict[str, str]:
-    """Map every dotted leaf path of a config class to itself, e.g. ``sensor.range_std_m``."""
+    """Map every dotted leaf path of a config class to itself, e.g. ``sensor.range_std_m``. An optional sub-config
+    (``layers: LayersConfig | None``) is a path itself (``layers=none`` switches it off) and so are its fields."""
     out: dict[str, str] = {}
     hints = _field_types(cls)
     for f in dataclasses.fields(cls):
@@ -140,6 +151,9 @@ def leaf_paths(cls: type, prefix: str = "") -> dict[str, str]:
         path = prefix + f.name
         if dataclasses.is_dataclass(tp):
             out.update(leaf_paths(tp, path + "."))  # type: ignore[arg-type]
+        elif (sub := _optional_config(tp)) is not None:
+            out[path] = path
+            out.update(leaf_paths(sub, path + "."))
         else:
             out[path] = path
     return out
@@ -166,7 +180,10 @@ def with_overrides(cfg: C, overrides: Mapping[str, Any]) -> C:
             raise ValueError(f"unknown key {key!r} for {type(cfg).__name__}; valid keys: {valid}")
         node = data
         parts = path.split(".")
-        for p in parts[:-1]:
+        for i, p in enumerate(parts[:-1]):
+            if node[p] is None:
+                off = ".".join(parts[: i + 1])
+                raise ValueError(f"{type(cfg).__name__}.{off} is off (None) here, so {key!r} cannot be set")
             node = node[p]
         node[parts[-1]] = value
     return from_dict(type(cfg), data)

@@ -157,6 +157,18 @@ def lifelong() -> LidarSLAM:
     return LidarSLAM(LidarSLAMConfig(layers=LayersConfig(), loop_closure=False))
 
 
+def test_layer_fields_can_be_overridden_by_dotted_key() -> None:
+    from slam2d.graph.lidar import LifelongLidarConfig
+
+    cfg = with_overrides(LifelongLidarConfig(), {"layers.persist_s": "3", "layers.inlier_m": 0.2})
+    assert cfg.layers is not None and cfg.layers.persist_s == 3.0 and cfg.layers.inlier_m == 0.2
+    assert with_overrides(LifelongLidarConfig(), {"layers": "none", "loop_closure": "true"}).layers is None
+    with pytest.raises(ValueError, match=r"LifelongLidarConfig\.layers\.persist_s must be"):
+        with_overrides(LifelongLidarConfig(), {"layers.persist_s": "-1"})
+    with pytest.raises(ValueError, match=r"LidarSLAMConfig\.layers is off \(None\)"):
+        with_overrides(LidarSLAMConfig(), {"layers.persist_s": "3"})
+
+
 def test_lifelong_needs_loop_closure_off() -> None:
     with pytest.raises(ValueError, match="loop_closure=False"):
         LidarSLAMConfig(layers=LayersConfig())
