@@ -8,7 +8,11 @@ from the saved map at random unknown poses and must relocalise.
    lidar, and floor markers or not) against the saved map. Reported: success rate (accepted within the budget and
    right), WRONG acceptances (error > 0.5 m or > 5 deg: must be 0), time to decide;
 3. the whole of flights 2 and 3 as lidar sessions from the previous flight's saved map (relocalise, then localise and
-   map): the static layers of consecutive flights compared cell by cell (occupied cells, IoU).
+   map): the static layers of consecutive flights compared cell by cell (occupied cells, IoU), and against the
+   truth: the pallet faces that differ between the two flights' worlds are the moved pallets; the IoU outside them,
+   and where the cells that joined or left the static layer lie. ``--estimator lidar-lifelong`` runs the sessions
+   with map layers (flights 2 and 3 localise against the saved static layer and update it; their maps keep the
+   saved one's cell lattice); ``lidar`` re-draws each flight's map from its keyframe scans.
 
 Default world (state it with the numbers): 40 x 30 m, 3 aisles, 1 cross-aisle, 40 pallets, 2 forklifts, 10 Hz
 (``dt_s=0.1``), the challenge's 360-beam 30 m lidar; the full 100 x 100 m world is ``--full`` (20 forklifts, 600
@@ -29,6 +33,7 @@ import numpy as np
 from slam2d.config import with_overrides
 from slam2d.frontend.relocalise import RelocaliseConfig, Relocaliser
 from slam2d.geometry import se2
+from slam2d.graph.lidar import LidarSLAMConfig, LifelongLidarConfig
 from slam2d.graph.lidar_session import LidarSession, LidarSessionConfig
 from slam2d.lab.runner import run
 from slam2d.maps.store import MapSnapshot
@@ -68,12 +73,51 @@ def iou(a: MapSnapshot, b: MapSnapshot) -> tuple[float, float]:
     return exact, shared / max(len(ca) + len(cb) - shared, 1)
 
 
-def session(cfg: ScenarioConfig, seed: int, prior: MapSnapshot | None, world: str) -> tuple[LidarSession, float]:
+def segment_cells(walls: np.ndarray, res: float) -> set[tuple[int, int]]:
+    """Global integer cells (as :func:`occupied_cells`) that the segments (W,4) pass through (sampled every res/4)."""
+    out: set[tuple[int, int]] = set()
+    for x0, y0, x1, y1 in walls:
+        n = max(int(np.hypot(x1 - x0, y1 - y0) / (res / 4)), 1) + 1
+        t = np.linspace(0.0, 1.0, n)
+        c = np.floor(np.stack([x0 + t * (x1 - x0), y0 + t * (y1 - y0)], -1) / res).astype(np.int64)
+        out.update(map(tuple, c.tolist()))
+    return out
+
+
+def dilate(cells: set[tuple[int, int]], r: int = 1) -> set[tuple[int, int]]:
+    return {(x + dx, y + dy) for x, y in cells for dx in range(-r, r + 1) for dy in range(-r, r + 1)}
+
+
+def changes(a: MapSnapshot, b: MapSnapshot, walls_a: np.ndarray, walls_b: np.ndarray) -> dict[str, float]:
+    """How the static layer changed between two flights against the truth: the walls that differ between the two
+    flights' worlds are the moved pallets' faces (old and new). Reported: the IoU of the two static layers outside
+    the moved pallets (one cell of margin), and where the cells that joined / left the static layer lie."""
+    res = a.occupancy_resolution_m
+    key = lambda w: {tuple(np.round(r, 6)) for r in w}  # noqa: E731
+    ka, kb = key(walls_a), key(walls_b)
+    gone = np.array([w for w in walls_a if tuple(np.round(w, 6)) not in kb]).reshape(-1, 4)
+    came = np.array([w for w in walls_b if tuple(np.round(w, 6)) not in ka]).reshape(-1, 4)
+    old_cells, new_cells = dilate(segment_cells(gone, res)), dilate(segment_cells(came, res))
+    moved = old_cells | new_cells
+    ca, cb = occupied_cells(a), occupied_cells(b)
+    ra, rb = ca - moved, cb - moved
+    added, removed = cb - ca, ca - cb
+    return {"moved_pallet_faces": float(len(came)), "iou_outside_moved": len(ra & rb) / max(len(ra | rb), 1),
+            "added_cells": float(len(added)), "added_on_new_pallets": len(added & new_cells) / max(len(added), 1),
+            "removed_cells": float(len(removed)),
+            "removed_on_old_pallets": len(removed & old_cells) / max(len(removed), 1),
+            "new_pallet_cells_in_static": len(segment_cells(came, res) & cb) / max(len(segment_cells(came, res)), 1)}
+
+
+def session(cfg: ScenarioConfig, seed: int, prior: MapSnapshot | None, world: str,
+            lifelong: bool) -> tuple[LidarSession, float, np.ndarray]:
     log = simulate(cfg, seed)
-    est = LidarSession(LidarSessionConfig(), prior=prior, world_id=world)
+    lidar = LifelongLidarConfig() if lifelong else LidarSLAMConfig()
+    est = LidarSession(LidarSessionConfig(lidar=lidar), prior=prior, world_id=world)
     t0 = time.perf_counter()
     run(est, log, rng=spawn_streams(seed)["estimator"], progress=False)
-    return est, time.perf_counter() - t0
+    assert log.walls is not None
+    return est, time.perf_counter() - t0, log.walls
 
 
 def trials(prior: MapSnapshot, cfg: ScenarioConfig, seed: int, starts: int, budget_s: float,
@@ -122,6 +166,10 @@ def main() -> None:
     ap.add_argument("--json", default=None, help="write every trial and the summary here")
     ap.add_argument("--maps-dir", default=None, help="save each flight's map here (flight1.db, ...)")
     ap.add_argument("--skip-trials", action="store_true", help="only the three sessions and the IoU")
+    ap.add_argument("--estimator", choices=("lidar", "lidar-lifelong"), default="lidar",
+                    help="the sessions' back end: lidar (keyframe scans, loops; the map is re-drawn from the "
+                         "keyframes) or lidar-lifelong (map layers: flights 2 and 3 localise against the saved "
+                         "static layer and update it)")
     args = ap.parse_args()
     base = FULL if args.full else SMALL
     from slam2d.cli.map_session import world_of
@@ -129,7 +177,9 @@ def main() -> None:
     world = world_of(scenario(base, 0), args.seed)
     print(f"world: {'100 x 100 m challenge' if args.full else '40 x 30 m, 3 aisles, 40 pallets, 2 forklifts'}, "
           f"seed {args.seed}, {args.starts} random starts per flight, {args.budget_s:.0f} s of motion each")
-    est1, t1 = session(scenario(base, 0), args.seed, None, world)
+    lifelong = args.estimator == "lidar-lifelong"
+    print(f"sessions: --estimator {args.estimator}")
+    est1, t1, walls = session(scenario(base, 0), args.seed, None, world, lifelong)
     maps = [est1.snapshot()]
     if args.maps_dir:
         est1.save_map(f"{args.maps_dir}/flight1.db")
@@ -137,7 +187,7 @@ def main() -> None:
     print(f"flight 1 (cold start): {t1:.0f} s; map {c['keyframes']} keyframes, {c['edges']} edges, "
           f"{c['occupancy_cells']} cells, {int(np.isfinite(maps[0].layers['floor_markers'][:, 0]).sum())} markers")
     rng = np.random.default_rng(args.seed)
-    table, record = [], {"world": base, "trials": {}, "iou": {}}
+    table, record = [], {"world": base, "estimator": args.estimator, "trials": {}, "iou": {}, "changes": {}}
     for flight in (1, 2):
         if not args.skip_trials:
             rows = trials(maps[-1], scenario(base, flight), args.seed, args.starts, args.budget_s, rng)
@@ -145,7 +195,7 @@ def main() -> None:
             for markers in (True, False):
                 table.append({"flight": flight + 1, "markers": "yes" if markers else "no",
                               **summarise(rows, markers)})
-        est, t = session(scenario(base, flight), args.seed, maps[-1], world)
+        est, t, walls_next = session(scenario(base, flight), args.seed, maps[-1], world, lifelong)
         if not est.relocalised:
             print(f"flight {flight + 1} session never relocalised; no map to compare")
             break
@@ -153,9 +203,15 @@ def main() -> None:
         if args.maps_dir:
             est.save_map(f"{args.maps_dir}/flight{flight + 1}.db")
         exact, tol = record["iou"][f"{flight}-{flight + 1}"] = iou(maps[-2], maps[-1])
+        ch = record["changes"][f"{flight}-{flight + 1}"] = changes(maps[-2], maps[-1], walls, walls_next)
+        walls = walls_next
         print(f"flight {flight + 1} session: {t:.0f} s, relocalised at step {est.accepted_step}, "
               f"{est.map_loops} loops into the saved map; static layer IoU vs flight {flight}: {exact:.3f} "
-              f"(one-cell tolerance: {tol:.3f})")
+              f"(one-cell tolerance: {tol:.3f}; outside the moved pallets: {ch['iou_outside_moved']:.3f}); "
+              f"{ch['moved_pallet_faces']:.0f} pallet faces moved: {ch['added_cells']:.0f} cells joined the static "
+              f"layer ({ch['added_on_new_pallets']:.0%} on a new pallet place), {ch['removed_cells']:.0f} left it "
+              f"({ch['removed_on_old_pallets']:.0%} on an old one); {ch['new_pallet_cells_in_static']:.0%} of the "
+              "new pallet faces' cells are static")
     cols = ["flight", "markers", "starts", "success", "success_rate", "wrong", "undecided", "decide_s_median",
             "decide_s_max", "error_m_max", "cpu_s_per_start"]
     print("  ".join(f"{c:>15s}" for c in cols))

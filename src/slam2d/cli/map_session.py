@@ -25,6 +25,9 @@ from slam2d.maps.store import MapFormatError, MapSnapshot, MapStore, sim_world_i
 from slam2d.sim.scenarios import ScenarioConfig
 from slam2d.sim.simulator import simulate, spawn_streams
 
+#: the estimators a session with saved maps runs: the lidar back end, plain or lifelong (map layers)
+SESSION_ESTIMATORS = ("lidar", "lidar-lifelong")
+
 
 def world_of(scenario: ScenarioConfig, seed: int) -> str:
     cfg = scenario.resolved()
@@ -65,11 +68,11 @@ def relocalisation_record(est: LidarSession, true_poses: np.ndarray | None, t0: 
 
 def run_session(args: argparse.Namespace, overrides: dict[str, str]) -> tuple[dict[str, Any], LidarSession]:
     """Simulate, check the map files, run the session; returns (record, estimator)."""
-    if args.estimator != "lidar":
-        raise ValueError(f"--map-in/--map-out need --estimator lidar (got {args.estimator!r})")
+    if args.estimator not in SESSION_ESTIMATORS:
+        raise ValueError(f"--map-in/--map-out need --estimator lidar or lidar-lifelong (got {args.estimator!r})")
     if args.log or args.dataset:
         raise ValueError("--map-in/--map-out work with simulated scenarios (--scenario), whose world is known")
-    spec = get_spec("lidar")
+    spec = get_spec(args.estimator)
     est_only = {k.split(".", 1)[1]: v for k, v in overrides.items() if k.startswith("estimator.")}
     rest = {k.split(".", 1)[1] if k.startswith("scenario.") else k: v for k, v in overrides.items()
             if not k.startswith("estimator.")}
@@ -78,11 +81,11 @@ def run_session(args: argparse.Namespace, overrides: dict[str, str]) -> tuple[di
     world = world_of(scenario, args.seed)
     prior = check_map_files(args.map_in, args.map_out, world)
     log = simulate(scenario, args.seed)
-    lidar_cfg = make_config("lidar", {**est_over, **est_only}, log.metadata, has_ids=False)
+    lidar_cfg = make_config(args.estimator, {**est_over, **est_only}, log.metadata, has_ids=False)
     est = LidarSession(LidarSessionConfig(lidar=lidar_cfg), prior=prior, world_id=world,
                        metadata={"scenario": scenario.name, "seed": args.seed})
     result = run(est, log, rng=spawn_streams(args.seed)["estimator"], progress=None)
-    record: dict[str, Any] = {"estimator": "lidar", "scenario": scenario.name, "seed": int(args.seed),
+    record: dict[str, Any] = {"estimator": args.estimator, "scenario": scenario.name, "seed": int(args.seed),
                               **result.metrics, "map_in": args.map_in, "map_out": args.map_out,
                               "estimator_config": to_dict(lidar_cfg), "scenario_config": log.metadata["config"]}
     if prior is not None:

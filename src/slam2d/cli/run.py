@@ -65,11 +65,11 @@ def register(sub: Any) -> None:
     p.add_argument("--no-loop-closure", action="store_true",
                    help="switch the estimator's loop closure off (estimators that have one, e.g. graph)")
     p.add_argument("--map-in", default=None, metavar="A.db",
-                   help="--estimator lidar on a simulated scenario: start from this saved map at an unknown pose "
-                        "(global relocalisation, then localise and keep mapping in the map's frame)")
+                   help="--estimator lidar or lidar-lifelong on a simulated scenario: start from this saved map at an "
+                        "unknown pose (global relocalisation, then localise and keep mapping in the map's frame)")
     p.add_argument("--map-out", default=None, metavar="B.db",
-                   help="--estimator lidar on a simulated scenario: save the estimated map (keyframes, pose graph, "
-                        "static layer) here, atomically (may equal --map-in)")
+                   help="--estimator lidar or lidar-lifelong on a simulated scenario: save the estimated map "
+                        "(keyframes, pose graph, static layer) here, atomically (may equal --map-in)")
     add_set_argument(p)
     add_force_argument(p)
     p.set_defaults(func=cmd)

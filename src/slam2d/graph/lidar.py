@@ -446,6 +446,19 @@ class LidarSLAM(EstimatorLifecycle):
         b = g.block("between")
         return np.asarray(b.keys.T, dtype=np.int64).reshape(-1, 2), b.z.copy(), b.information
 
+    def seed_prior_layers(self, layers: MapLayers, keyframe_poses: Array) -> None:
+        """Lifelong mode from a saved map: right after ``reset(pose)`` at the relocalised pose, localise against
+        ``layers`` (a saved static layer, :meth:`MapLayers.from_saved`) instead of bootstrapping a new one. The
+        map's keyframes (``keyframe_poses`` (K,3)) only count as coverage: no keyframe is added on ground they
+        cover; the keyframes of this run form their own graph (the map never moves in this mode)."""
+        self._check_step()
+        if self.layers is None:
+            raise ValueError("LidarSLAM.seed_prior_layers: lifelong mode is off (set LidarSLAMConfig.layers)")
+        if self.graph is not None or self.steps:
+            raise ValueError("LidarSLAM.seed_prior_layers: call it right after reset(), before any step")
+        self.layers = layers
+        self._kf_xy = np.asarray(keyframe_poses, dtype=np.float64).reshape(-1, 3)[:, :2].copy()
+
     def seed_prior_map(self, poses: Array, scans: list[Scan], scan: Scan, pose: Array, information: Array,
                        step_index: int) -> None:
         """Start from a saved map: right after ``reset(pose)``, make the map's keyframes (``poses`` (K,3), their

@@ -28,6 +28,7 @@ from slam2d.frontend.relocalise import RelocaliseConfig, Relocaliser
 from slam2d.geometry import se2
 from slam2d.graph.lidar import LidarSLAM, LidarSLAMConfig
 from slam2d.log import Scan, Step
+from slam2d.maps.layers import MapLayers
 from slam2d.maps.occupancy import OccupancyConfig, OccupancyGrid
 from slam2d.maps.store import MapSnapshot, MapStore, range_histogram
 
@@ -78,6 +79,11 @@ class LidarSession(EstimatorLifecycle):
             self._pose = np.zeros(3)
 
     @property
+    def lifelong(self) -> bool:
+        """The lidar estimator keeps map layers: the saved map's static layer is reused, not rebuilt."""
+        return self.config.lidar.layers is not None
+
+    @property
     def relocalised(self) -> bool:
         return self.relocaliser is None or self.accepted_step is not None
 
@@ -107,6 +113,12 @@ class LidarSession(EstimatorLifecycle):
         self._pre_map = se2.compose(t_map_session, np.asarray(self._pre)).reshape(-1, 3)
         self.lidar.reset(pose, rng=self._rng)
         p = self.prior
+        if self.lifelong:
+            # the static layer is the saved one; the scans from the next step on are localised against it
+            self.lidar.seed_prior_layers(MapLayers.from_saved(self.config.lidar.layers, p.layers), p.keyframe_poses)
+            self._pose = pose.copy()
+            self._collect_markers(step)
+            return
         scans = [Scan(r.astype(np.float64), p.scan_angles_rad, p.scan_max_range_m) for r in p.keyframe_scans]
         info = information if information is not None else np.diag([1 / 0.05**2, 1 / 0.05**2, 1 / 0.01**2])
         self.lidar.seed_prior_map(p.keyframe_poses, scans, step.scan, pose, info, int(step.index))
@@ -157,17 +169,29 @@ class LidarSession(EstimatorLifecycle):
             raise ValueError("LidarSession: not relocalised in the prior map yet; nothing new to save")
         lid = self.lidar
         poses = lid.keyframe_poses
+        scans = lid.keyframe_scans()
+        edges, z, info = lid.pose_graph_edges()
+        layers: dict[str, NDArray[Any]] = {}
+        if self.lifelong:
+            lay = lid.map_layers()
+            grid = lay.static_grid()
+            layers.update(lay.saved())
+            if self.prior is not None:  # the map's keyframes stay as saved (they never move in lifelong mode)
+                p, k = self.prior, len(self.prior.keyframe_poses)
+                edges = np.vstack([p.edge_nodes, edges + k])
+                z, info = np.vstack([p.edge_poses, z]), np.concatenate([p.edge_information, info])
+                poses = np.vstack([p.keyframe_poses, poses])
+                scans = [Scan(r.astype(np.float64), p.scan_angles_rad, p.scan_max_range_m)
+                         for r in p.keyframe_scans] + scans
         if len(poses) == 0:
             raise ValueError("LidarSession: no keyframe yet (no scan was processed); nothing to save")
-        scans = lid.keyframe_scans()
         beams = {len(s.ranges_m) for s in scans}
         if len(beams) != 1:
             raise ValueError(f"LidarSession: keyframe scans have different beam counts {sorted(beams)}")
         ranges = np.stack([np.asarray(s.ranges_m, dtype=np.float32) for s in scans])
         max_range = float(scans[-1].max_range_m)
-        edges, z, info = lid.pose_graph_edges()
-        grid = self._static_layer(poses, scans)
-        layers: dict[str, NDArray[Any]] = {}
+        if not self.lifelong:
+            grid = self._static_layer(poses, scans)
         prior_markers = None if self.prior is None else self.prior.layers.get("floor_markers")
         n_mk = max([len(prior_markers) if prior_markers is not None else 0] + [i + 1 for i in self._markers])
         if n_mk:
@@ -178,7 +202,7 @@ class LidarSession(EstimatorLifecycle):
                 if i >= 0:
                     mk[i] = np.mean(xs, axis=0)
             layers["floor_markers"] = mk
-        meta = {**self.metadata, "source": "estimator", "estimator": "lidar",
+        meta = {**self.metadata, "source": "estimator", "estimator": "lidar-lifelong" if self.lifelong else "lidar",
                 "prior_keyframes": 0 if self.prior is None else len(self.prior.keyframe_poses),
                 "accepted_step": self.accepted_step}
         return MapSnapshot(

@@ -34,6 +34,7 @@ distance field to cell centres was tried first: half-cell quantisation biased th
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -478,6 +479,50 @@ class MapLayers:
         grid.logodds = np.where(self.static, self.config.max_logodds, np.where(free, self.logodds, 0.0)).astype(float)
         grid.observed = self.static | free
         return grid
+
+    # ------------------------------------------------------------------ saved maps
+    #: the named arrays of a saved static layer (``MapSnapshot.layers``)
+    SAVED = ("static_frame", "static_logodds", "static_mask", "static_mean")
+
+    def saved(self) -> dict[str, NDArray[Any]]:
+        """The static layer as named arrays for a saved map: frame [x0, y0, cell size], log-odds, membership, and
+        each cell's mean hit point (the sub-cell map the matcher pulls towards). The sighting streaks and the
+        dynamic layer are not kept: they describe one flight."""
+        return {"static_frame": np.array([self.origin[0], self.origin[1], self.resolution]),
+                "static_logodds": self.logodds.copy(), "static_mask": self.static.copy(),
+                "static_mean": self.mean.copy()}
+
+    @classmethod
+    def from_saved(cls, config: LayersConfig | None, arrays: Mapping[str, NDArray[Any]]) -> MapLayers:
+        """Layers whose static layer is a saved one (:meth:`saved`), ready to localise against: no bootstrap (the
+        map exists), every saved static cell stays until it is seen through, new cells follow the persistence
+        rule. ValueError when an array is missing or the cell size differs from ``config``'s."""
+        lay = cls(config)
+        missing = [n for n in cls.SAVED if n not in arrays]
+        if missing:
+            raise ValueError(f"MapLayers.from_saved: the map has no saved static layer (missing {missing}); it was "
+                             "not made by a lifelong session")
+        frame = np.asarray(arrays["static_frame"], dtype=np.float64)
+        lo, mask = np.asarray(arrays["static_logodds"]), np.asarray(arrays["static_mask"])
+        mean = np.asarray(arrays["static_mean"])
+        if frame.shape != (3,) or not np.all(np.isfinite(frame)) or lo.ndim != 2 or mask.shape != lo.shape \
+                or mean.shape != (*lo.shape, 2) or mask.dtype != np.bool_:
+            raise ValueError("MapLayers.from_saved: inconsistent static-layer arrays")
+        if not np.isclose(frame[2], lay.resolution, rtol=0, atol=1e-12):
+            raise ValueError(f"MapLayers.from_saved: the saved layer has {frame[2]:g} m cells, the config "
+                             f"{lay.resolution:g} m (LayersConfig.resolution_m)")
+        lay.origin, lay.shape = frame[:2].copy(), (int(lo.shape[0]), int(lo.shape[1]))
+        for name, (fill, dtype, trail) in cls._FILL.items():
+            setattr(lay, name, np.full((*lay.shape, *trail), fill, dtype=dtype))
+        lay.logodds[:] = lo
+        lay.static[:] = mask
+        lay.mean[:] = mean
+        lay.count[mask] = 10.0  # settled means: new hits still move them, a few hits do not overwrite them
+        lay.integrations, lay.started_s = 1, -np.inf  # not a first scan, and past the bootstrap
+        if mask.any():
+            lay._dirty = [0, 0, lay.shape[0] - 1, lay.shape[1] - 1]
+            lay.refresh_field()
+        return lay
 
     def nbytes(self) -> int:
         """Bytes held by the grids."""
