@@ -73,7 +73,8 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     for k in range(args.drones):
         cmd = [sys.executable, "-m", "slam2d", "drone", "--server", ep, "--drone", str(k), "--scenario",
                args.scenario, "--minutes", str(args.minutes), "--seed", str(args.seed), "--json",
-               str(work / f"drone{k}.json"), "--rate", str(args.rate)]
+               str(work / f"drone{k}.json"), "--rate", str(args.rate)] + (["--floor-markers"] if args.floor_markers
+                                                                          else [])
         if k == args.cut_drone:
             cmd += ["--blackout", f"{args.cut_at}:{args.cut_seconds}"]
         drones.append(subprocess.Popen(cmd, stdout=open(work / f"drone{k}.log", "wb"),
@@ -119,6 +120,8 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
                      "down_kBps_p99": float(np.percentile(down, 99)) / 1024,
                      "total_kBps_p99": float(np.percentile(up + down, 99)) / 1024, "reconnects": rec["reconnects"],
                      "lost_acked": rec["lost_acked"], "errors": len(rec["errors"]), "tiles": rec["tiles"],
+                     "marker_sightings_sent": rec.get("marker_sightings", 0),
+                     "own_marker_resightings": rec.get("marker_resightings", 0),
                      "cut_off": k == args.cut_drone})
     # the whole merged map aligned to the truth by ONE rigid transform (all drones together), for comparison
     from slam2d.eval.trajectory import align_se2
@@ -137,10 +140,10 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         key = f"{min(lp['a'][0], lp['b'][0])}-{max(lp['a'][0], lp['b'][0])}"
         pairs[key] = pairs.get(key, 0) + 1
     return {"drones": rows, "inter_robot_loops": len(loops), "loops_by_pair": pairs, "kill": kill,
-            "wall_s": round(wall, 1), "server_errors": final["errors"]}
+            "wall_s": round(wall, 1), "server_errors": final["errors"], "markers": final.get("markers")}
 
 
-def scaling(sizes: list[int], minutes: float, seed: int, work: Path) -> dict[str, Any]:
+def scaling(sizes: list[int], minutes: float, seed: int, work: Path, floor_markers: bool = False) -> dict[str, Any]:
     from slam2d.fleet.drone import DroneConfig
     from slam2d.fleet.local import run_local
 
@@ -148,7 +151,7 @@ def scaling(sizes: list[int], minutes: float, seed: int, work: Path) -> dict[str
     for n in sizes:
         db = work / f"scale{n}.db"
         t0 = time.perf_counter()
-        run = run_local(db, n, DroneConfig(minutes=minutes, seed=seed))
+        run = run_local(db, n, DroneConfig(minutes=minutes, seed=seed, floor_markers=floor_markers))
         upd = np.asarray(run.update_s)
         sol = np.asarray([s.seconds for s in run.server.joint.solves])
         out["rows"].append({"drones": n, "nodes": len(run.server.joint.poses), "updates": len(upd),
@@ -183,6 +186,8 @@ def main() -> None:
     ap.add_argument("--scaling", default="1,2,5,10", help="fleet sizes of the cost part ('' skips it)")
     ap.add_argument("--scaling-minutes", type=float, default=1.0)
     ap.add_argument("--skip-network", action="store_true")
+    ap.add_argument("--floor-markers", action="store_true",
+                    help="the warehouse's floor markers: drones read them, the server joins them (slam2d.fleet.joint)")
     ap.add_argument("--out", required=True, help="JSON output file")
     args = ap.parse_args()
     result: dict[str, Any] = {"args": vars(args)}
@@ -195,7 +200,7 @@ def main() -> None:
         print(json.dumps(result["network"], indent=1, default=str), flush=True)
     if args.scaling:
         result["scaling"] = scaling([int(s) for s in args.scaling.split(",")], args.scaling_minutes,
-                                    args.seed, work)
+                                    args.seed, work, args.floor_markers)
         print(json.dumps(result["scaling"], indent=1), flush=True)
     Path(args.out).write_text(json.dumps(result, indent=1, default=str) + "\n")
 
