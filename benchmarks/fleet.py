@@ -143,15 +143,27 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
             "wall_s": round(wall, 1), "server_errors": final["errors"], "markers": final.get("markers")}
 
 
-def scaling(sizes: list[int], minutes: float, seed: int, work: Path, floor_markers: bool = False) -> dict[str, Any]:
+def scaling(sizes: list[int], minutes: float, seed: int, work: Path, floor_markers: bool = False,
+            surveyed: bool = False) -> dict[str, Any]:
     from slam2d.fleet.drone import DroneConfig
-    from slam2d.fleet.local import run_local
+    from slam2d.fleet.joint import JointConfig
+    from slam2d.fleet.local import merged_ate, run_local
+    from slam2d.sim.scenarios import ScenarioConfig
+    from slam2d.sim.simulator import Simulator
+    from slam2d.sim.warehouse import WarehouseConfig
 
     out: dict[str, Any] = {"sizes": sizes, "minutes": minutes, "rows": []}
     for n in sizes:
         db = work / f"scale{n}.db"
         t0 = time.perf_counter()
-        run = run_local(db, n, DroneConfig(minutes=minutes, seed=seed, floor_markers=floor_markers))
+        joint = JointConfig()
+        if surveyed:  # the scenario's own marker positions stand for a survey of the floor markers
+            world = Simulator(ScenarioConfig(name="warehouse", warehouse=WarehouseConfig(floor_markers=True))).world
+            joint = JointConfig(surveyed_markers=tuple((i, float(x), float(y))
+                                                       for i, (x, y) in enumerate(world.floor_markers)))
+        run = run_local(db, n, DroneConfig(minutes=minutes, seed=seed, floor_markers=floor_markers), joint)
+        results = [d.result() for d in run.drones]
+        j = run.server.joint
         upd = np.asarray(run.update_s)
         sol = np.asarray([s.seconds for s in run.server.joint.solves])
         out["rows"].append({"drones": n, "nodes": len(run.server.joint.poses), "updates": len(upd),
@@ -159,7 +171,12 @@ def scaling(sizes: list[int], minutes: float, seed: int, work: Path, floor_marke
                             "update_ms_p99": float(np.percentile(upd, 99)) * 1e3,
                             "solves": len(sol), "solve_ms_p50": float(np.percentile(sol, 50)) * 1e3 if len(sol) else 0,
                             "solve_ms_p99": float(np.percentile(sol, 99)) * 1e3 if len(sol) else 0,
-                            "loops": len(run.server.joint.loops), "wall_s": round(time.perf_counter() - t0, 1)})
+                            "loops": len(run.server.joint.loops), "wall_s": round(time.perf_counter() - t0, 1),
+                            "ate_merged_m": [merged_ate(r.truth, j.drone_poses(r.drone)[: len(r.truth)])
+                                             for r in results],
+                            "ate_own_front_end_m": [merged_ate(r.truth, r.local) for r in results],
+                            "markers": len(j.marker_ids), "marker_links": j.marker_links,
+                            "marker_resightings": j.marker_resightings})
         run.server.close()
     rows = out["rows"]
     x = np.log([r["drones"] for r in rows])
@@ -188,6 +205,8 @@ def main() -> None:
     ap.add_argument("--skip-network", action="store_true")
     ap.add_argument("--floor-markers", action="store_true",
                     help="the warehouse's floor markers: drones read them, the server joins them (slam2d.fleet.joint)")
+    ap.add_argument("--surveyed-markers", action="store_true",
+                    help="in-process part only: the server knows every marker's position (a survey; 1 cm priors)")
     ap.add_argument("--out", required=True, help="JSON output file")
     args = ap.parse_args()
     result: dict[str, Any] = {"args": vars(args)}
@@ -200,7 +219,7 @@ def main() -> None:
         print(json.dumps(result["network"], indent=1, default=str), flush=True)
     if args.scaling:
         result["scaling"] = scaling([int(s) for s in args.scaling.split(",")], args.scaling_minutes,
-                                    args.seed, work, args.floor_markers)
+                                    args.seed, work, args.floor_markers, args.surveyed_markers)
         print(json.dumps(result["scaling"], indent=1), flush=True)
     Path(args.out).write_text(json.dumps(result, indent=1, default=str) + "\n")
 

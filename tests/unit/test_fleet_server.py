@@ -241,3 +241,17 @@ def test_a_marker_read_by_two_drones_ties_them(tmp_path: Path, markers: bool) ->
     s2 = MapServer(tmp_path / "m.db")  # restart: the markers come back from the journal
     assert len(s2.joint.marker_ids) == (1 if markers else 0)
     s2.close()
+
+
+def test_a_surveyed_marker_anchors_a_drifting_drone(tmp_path: Path) -> None:
+    """One drone, odometry 20 % long (30 cm edges), reads marker 9 from its last keyframe; the survey puts marker 9
+    at (4, 0.5): the last keyframe is pulled to x = 4 (without the survey, nothing contradicts the odometry)."""
+    from slam2d.fleet.joint import JointConfig
+
+    s = MapServer(tmp_path / "s.db", JointConfig(surveyed_markers=((9, 4.0, 0.5),)))
+    s.handle(B, encode({"type": "hello", "drone": 1, "session": "b", "dock": [0.0, 0.0, 0.0]}))
+    assert decode(s.handle(B, _marker_delta(1, 1.2, [0.0, 0.5], 0.3)))["type"] == "ack"
+    s.joint.solve(10)
+    assert abs(s.joint.drone_poses(1)[-1, 0] - 4.0) < 0.05
+    assert np.allclose(s.joint.markers[0], [4.0, 0.5], atol=0.01)
+    s.close()

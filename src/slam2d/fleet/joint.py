@@ -81,6 +81,11 @@ class JointConfig:
     """Gauss-Newton iterations per solve (warm-started from the current estimate)."""
     marker_resight_keyframes: int = 10
     """a drone reading a marker again this many of its keyframes after its last reading of it closes a loop."""
+    surveyed_markers: tuple[tuple[int, float, float], ...] = ()
+    """floor markers whose warehouse positions were surveyed, (id, x, y): each gets a prior of ``survey_sigma_m``
+    (empty: markers are landmarks placed by the drones alone, which fixes consistency but not drift)."""
+    survey_sigma_m: float = 0.01
+    """standard deviation of a surveyed marker position (m)."""
     tile_m: float = 10.0
     """side of a map tile (m)."""
     tile_resolution_m: float = 0.2
@@ -139,6 +144,7 @@ class JointGraph:
         self.marker_last: dict[tuple[int, int], int] = {}  # (marker slot, drone) -> its newest reading keyframe
         self.marker_links = 0  # sightings of a marker another drone had read
         self.marker_resightings = 0  # a drone reading a marker again after marker_resight_keyframes
+        self._survey = {int(i): np.array([x, y], np.float64) for i, x, y in self.config.surveyed_markers}
 
     # ------------------------------------------------------------------ building
     def add_drone(self, drone: int, dock: Array) -> None:
@@ -191,14 +197,17 @@ class JointGraph:
             if s is None:
                 s = self._marker_slot[mid] = len(self.marker_ids)
                 self.marker_ids.append(mid)
-                self.markers = np.vstack([self.markers, se2.transform_points(self.poses[key], z[None])])
+                start = self._survey.get(mid)
+                if start is None:
+                    start = se2.transform_points(self.poses[key], z[None])[0]
+                self.markers = np.vstack([self.markers, start[None]])
             others = any(d != drone for (m, d) in self.marker_last if m == s)
             last = self.marker_last.get((s, drone))
             if others:
                 self.marker_links += 1
-            if last is not None and kf.id - last >= self.config.marker_resight_keyframes:
-                self.marker_resightings += 1
-            if others or (last is not None and kf.id - last >= self.config.marker_resight_keyframes):
+            resight = last is not None and kf.id - last >= self.config.marker_resight_keyframes
+            self.marker_resightings += resight
+            if others or resight or mid in self._survey:  # a surveyed marker is an absolute fix
                 self._loops_pending = True
             self.marker_last[(s, drone)] = kf.id
             self._mk_key.append(key)
@@ -315,6 +324,10 @@ class JointGraph:
             sig = np.asarray(self._mk_sigma)
             g.add_point(np.asarray(self._mk_key), np.asarray(self._mk_slot), np.asarray(self._mk_z),
                         np.eye(2)[None] / sig[:, None, None] ** 2)
+        known = [(s, self._survey[m]) for s, m in enumerate(self.marker_ids) if m in self._survey]
+        if known:
+            g.add_point_prior(np.asarray([s for s, _ in known]), np.asarray([xy for _, xy in known]),
+                              np.repeat(np.eye(2)[None] / cfg.survey_sigma_m**2, len(known), axis=0))
         before = self.poses.copy()
         out, _ = optimize(g, Values(np.arange(len(self.poses)), self.poses, np.arange(len(self.markers)),
                                     self.markers),
