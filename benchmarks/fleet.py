@@ -12,7 +12,11 @@ alone, lost acknowledged deltas (a drone notices when a
 restarted server reports fewer committed deltas than it had acknowledged), keyframes committed per drone against
 keyframes flown, and the cut-off drone's record. Scaling part: ``slam2d.fleet.local.run_local`` with 1, 2, 5 and
 10 drones, wall time of every delta's handling (commit, merge, loop search, solve) and of every whole-graph solve:
-p50/p99 and the fitted exponent of cost against fleet size.
+p50/p99 and the fitted exponent of cost against fleet size, and each drone's merged-frame ATE.
+
+``--floor-markers``: the warehouse's floor markers; drones read them (their front end uses them and their deltas
+carry each keyframe's readings) and the server joins them into shared marker nodes. ``--surveyed-markers`` (in-process
+part only): the server also knows every marker's position, as from a survey of the floor (1 cm priors).
 """
 
 from __future__ import annotations
