@@ -121,3 +121,33 @@ def test_readings_between_keyframes_attach_through_the_tracked_offset():
     expect = se2.transform_points(se2.compose(g.poses[0], rel), np.array([[0.5, 0.2]]))
     assert np.allclose(g.markers, expect)
     assert g._o_info[0][0, 0] == pytest.approx(1 / (0.01**2 + (0.02 * 0.3) ** 2))
+
+
+def test_lidar_estimator_uses_readings_and_is_unchanged_without_them():
+    """On one simulated warehouse log with floor markers: ignoring the readings (``markers.enabled=False``) and
+    a log without them give the same trajectory bit for bit; using them adds marker factors and moves it."""
+    from dataclasses import replace
+
+    from slam2d.graph.lidar import LidarSLAM, LidarSLAMConfig
+    from slam2d.sim.scenarios import ScenarioConfig
+    from slam2d.sim.simulator import simulate
+    from slam2d.sim.warehouse import WarehouseConfig
+
+    log = simulate(ScenarioConfig(name="warehouse", steps=150, warehouse=WarehouseConfig(floor_markers=True)), seed=3)
+
+    def run(cfg, strip):
+        est = LidarSLAM(cfg)
+        est.reset(log.initial_pose, rng=np.random.default_rng(0))
+        for s in log:
+            est.step(replace(s, markers=None) if strip else s)
+        est.finalize()
+        return est
+
+    off = run(LidarSLAMConfig(markers=MarkerSettings(enabled=False)), False)
+    none = run(LidarSLAMConfig(), True)
+    on = run(LidarSLAMConfig(), False)
+    assert np.array_equal(off.trajectory(), none.trajectory()) and off.markers.factors == 0
+    assert on.markers.factors > 0 and on.graph.num_observations == on.markers.factors
+    assert not np.array_equal(on.trajectory(), none.trajectory())
+    truth = log.true_markers[np.asarray(on.graph.marker_ids)]
+    assert np.abs(on.graph.markers - truth).max() < 0.5  # placed where they are, up to the drift so far

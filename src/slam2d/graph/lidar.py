@@ -120,7 +120,8 @@ class LidarSLAM(EstimatorLifecycle):
     def step(self, step: Step) -> None:
         self._check_step()
         self._step_scan(step)
-        if step.markers is not None and self.layers is None and isinstance(self.graph, MarkerPoseGraph) \
+        if step.markers is not None and self.config.markers.enabled and self.layers is None \
+                and isinstance(self.graph, MarkerPoseGraph) \
                 and self.markers.observe(self.graph, self._owner[-1], self._rel[-1], step.markers):
             self._version += 1  # a re-sighting moved the keyframes
             self._pose = se2.compose(self.graph.poses[self._owner[-1]], self._rel[-1])

@@ -44,6 +44,8 @@ IntArray = NDArray[np.int64]
 class MarkerSettings:
     """How the lidar back end uses floor-marker readings (when a step carries any)."""
 
+    enabled: bool = True
+    """use the readings (False: ignore them, the back end as it is without markers)."""
     camera: FloorCameraConfig = field(default_factory=FloorCameraConfig)
     """the camera model whose ``std_m`` sets a reading's information."""
     attach_sigma_per_m: float = 0.02
