@@ -12,7 +12,11 @@ alone, lost acknowledged deltas (a drone notices when a
 restarted server reports fewer committed deltas than it had acknowledged), keyframes committed per drone against
 keyframes flown, and the cut-off drone's record. Scaling part: ``slam2d.fleet.local.run_local`` with 1, 2, 5 and
 10 drones, wall time of every delta's handling (commit, merge, loop search, solve) and of every whole-graph solve:
-p50/p99 and the fitted exponent of cost against fleet size.
+p50/p99 and the fitted exponent of cost against fleet size, and each drone's merged-frame ATE.
+
+``--floor-markers``: the warehouse's floor markers; drones read them (their front end uses them and their deltas
+carry each keyframe's readings) and the server joins them into shared marker nodes. ``--surveyed-markers`` (in-process
+part only): the server also knows every marker's position, as from a survey of the floor (1 cm priors).
 """
 
 from __future__ import annotations
@@ -73,7 +77,8 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     for k in range(args.drones):
         cmd = [sys.executable, "-m", "slam2d", "drone", "--server", ep, "--drone", str(k), "--scenario",
                args.scenario, "--minutes", str(args.minutes), "--seed", str(args.seed), "--json",
-               str(work / f"drone{k}.json"), "--rate", str(args.rate)]
+               str(work / f"drone{k}.json"), "--rate", str(args.rate)] + (["--floor-markers"] if args.floor_markers
+                                                                          else [])
         if k == args.cut_drone:
             cmd += ["--blackout", f"{args.cut_at}:{args.cut_seconds}"]
         drones.append(subprocess.Popen(cmd, stdout=open(work / f"drone{k}.log", "wb"),
@@ -119,6 +124,8 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
                      "down_kBps_p99": float(np.percentile(down, 99)) / 1024,
                      "total_kBps_p99": float(np.percentile(up + down, 99)) / 1024, "reconnects": rec["reconnects"],
                      "lost_acked": rec["lost_acked"], "errors": len(rec["errors"]), "tiles": rec["tiles"],
+                     "marker_sightings_sent": rec.get("marker_sightings", 0),
+                     "own_marker_resightings": rec.get("marker_resightings", 0),
                      "cut_off": k == args.cut_drone})
     # the whole merged map aligned to the truth by ONE rigid transform (all drones together), for comparison
     from slam2d.eval.trajectory import align_se2
@@ -137,18 +144,30 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         key = f"{min(lp['a'][0], lp['b'][0])}-{max(lp['a'][0], lp['b'][0])}"
         pairs[key] = pairs.get(key, 0) + 1
     return {"drones": rows, "inter_robot_loops": len(loops), "loops_by_pair": pairs, "kill": kill,
-            "wall_s": round(wall, 1), "server_errors": final["errors"]}
+            "wall_s": round(wall, 1), "server_errors": final["errors"], "markers": final.get("markers")}
 
 
-def scaling(sizes: list[int], minutes: float, seed: int, work: Path) -> dict[str, Any]:
+def scaling(sizes: list[int], minutes: float, seed: int, work: Path, floor_markers: bool = False,
+            surveyed: bool = False) -> dict[str, Any]:
     from slam2d.fleet.drone import DroneConfig
-    from slam2d.fleet.local import run_local
+    from slam2d.fleet.joint import JointConfig
+    from slam2d.fleet.local import merged_ate, run_local
+    from slam2d.sim.scenarios import ScenarioConfig
+    from slam2d.sim.simulator import Simulator
+    from slam2d.sim.warehouse import WarehouseConfig
 
     out: dict[str, Any] = {"sizes": sizes, "minutes": minutes, "rows": []}
     for n in sizes:
         db = work / f"scale{n}.db"
         t0 = time.perf_counter()
-        run = run_local(db, n, DroneConfig(minutes=minutes, seed=seed))
+        joint = JointConfig()
+        if surveyed:  # the scenario's own marker positions stand for a survey of the floor markers
+            world = Simulator(ScenarioConfig(name="warehouse", warehouse=WarehouseConfig(floor_markers=True))).world
+            joint = JointConfig(surveyed_markers=tuple((i, float(x), float(y))
+                                                       for i, (x, y) in enumerate(world.floor_markers)))
+        run = run_local(db, n, DroneConfig(minutes=minutes, seed=seed, floor_markers=floor_markers), joint)
+        results = [d.result() for d in run.drones]
+        j = run.server.joint
         upd = np.asarray(run.update_s)
         sol = np.asarray([s.seconds for s in run.server.joint.solves])
         out["rows"].append({"drones": n, "nodes": len(run.server.joint.poses), "updates": len(upd),
@@ -156,7 +175,12 @@ def scaling(sizes: list[int], minutes: float, seed: int, work: Path) -> dict[str
                             "update_ms_p99": float(np.percentile(upd, 99)) * 1e3,
                             "solves": len(sol), "solve_ms_p50": float(np.percentile(sol, 50)) * 1e3 if len(sol) else 0,
                             "solve_ms_p99": float(np.percentile(sol, 99)) * 1e3 if len(sol) else 0,
-                            "loops": len(run.server.joint.loops), "wall_s": round(time.perf_counter() - t0, 1)})
+                            "loops": len(run.server.joint.loops), "wall_s": round(time.perf_counter() - t0, 1),
+                            "ate_merged_m": [merged_ate(r.truth, j.drone_poses(r.drone)[: len(r.truth)])
+                                             for r in results],
+                            "ate_own_front_end_m": [merged_ate(r.truth, r.local) for r in results],
+                            "markers": len(j.marker_ids), "marker_links": j.marker_links,
+                            "marker_resightings": j.marker_resightings})
         run.server.close()
     rows = out["rows"]
     x = np.log([r["drones"] for r in rows])
@@ -183,6 +207,10 @@ def main() -> None:
     ap.add_argument("--scaling", default="1,2,5,10", help="fleet sizes of the cost part ('' skips it)")
     ap.add_argument("--scaling-minutes", type=float, default=1.0)
     ap.add_argument("--skip-network", action="store_true")
+    ap.add_argument("--floor-markers", action="store_true",
+                    help="the warehouse's floor markers: drones read them, the server joins them (slam2d.fleet.joint)")
+    ap.add_argument("--surveyed-markers", action="store_true",
+                    help="in-process part only: the server knows every marker's position (a survey; 1 cm priors)")
     ap.add_argument("--out", required=True, help="JSON output file")
     args = ap.parse_args()
     result: dict[str, Any] = {"args": vars(args)}
@@ -195,7 +223,7 @@ def main() -> None:
         print(json.dumps(result["network"], indent=1, default=str), flush=True)
     if args.scaling:
         result["scaling"] = scaling([int(s) for s in args.scaling.split(",")], args.scaling_minutes,
-                                    args.seed, work)
+                                    args.seed, work, args.floor_markers, args.surveyed_markers)
         print(json.dumps(result["scaling"], indent=1), flush=True)
     Path(args.out).write_text(json.dumps(result, indent=1, default=str) + "\n")
 

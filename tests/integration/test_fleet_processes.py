@@ -148,7 +148,7 @@ def test_bad_clients_get_errors_and_a_real_drone_is_unaffected(tmp_path: Path,
     procs.append(server)
     out = tmp_path / "drone.json"
     drone = slam2d("drone", "--server", ep, "--drone", "0", "--minutes", "0.5", "--rate", "4", "--json", str(out),
-                   stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+                   "--floor-markers", stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     procs.append(drone)
     wait_for(lambda: committed(ep, 0) > 0, 60, "the drone's first keyframes")
 
@@ -181,6 +181,8 @@ def test_bad_clients_get_errors_and_a_real_drone_is_unaffected(tmp_path: Path,
     j = Journal(db)
     try:
         assert j.count("deltas") == rec["acked_max"] + 1
+        # the drone docks over a floor marker: its keyframes' readings reached the journal
+        assert rec["marker_sightings"] > 0 and j.count("keyframe_markers") > 0
     finally:
         j.close()
 

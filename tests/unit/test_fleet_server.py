@@ -12,7 +12,18 @@ import numpy as np
 import pytest
 
 from slam2d.fleet.journal import Journal, JournalError
-from slam2d.fleet.protocol import VERSION, decode, encode, info_upper, pack_descriptor, pack_points
+from slam2d.fleet.protocol import (
+    MAX_MARKERS,
+    VERSION,
+    decode,
+    encode,
+    info_upper,
+    pack_descriptor,
+    pack_markers,
+    pack_points,
+    parse_delta,
+    unpack_markers,
+)
 from slam2d.fleet.server import MapServer
 
 A, B = b"conn-a", b"conn-b"
@@ -127,7 +138,17 @@ def test_garbled_delta_fields(server: MapServer) -> None:
     for change in ({"keyframes": "x"}, {"seq": 0}, {"edges": [{"a": 2, "b": 3, "z": [1, 0], "info": [1] * 6}]},
                    {"edges": [{"a": 2, "b": 3, "z": [1, 0, 0], "info": [-1, 0, 0, 1, 0, 1]}]},
                    {"keyframes": [{**good["keyframes"][0], "desc": b"short"}]},
-                   {"keyframes": [{**good["keyframes"][0], "pts": b"\x00" * 4001}]}):
+                   {"keyframes": [{**good["keyframes"][0], "pts": b"\x00" * 4001}]},
+                   # floor-marker field: not bytes, not whole records, too many, a repeated id, a zero sigma
+                   {"keyframes": [{**good["keyframes"][0], "mk": "x"}]},
+                   {"keyframes": [{**good["keyframes"][0], "mk": b"\x00" * 7}]},
+                   {"keyframes": [{**good["keyframes"][0], "mk": pack_markers(np.arange(MAX_MARKERS + 1),
+                                                                              np.zeros((MAX_MARKERS + 1, 2)),
+                                                                              np.full(MAX_MARKERS + 1, 0.01))}]},
+                   {"keyframes": [{**good["keyframes"][0], "mk": pack_markers(np.array([3, 3]), np.zeros((2, 2)),
+                                                                              np.full(2, 0.01))}]},
+                   {"keyframes": [{**good["keyframes"][0], "mk": pack_markers(np.array([3]), np.zeros((1, 2)),
+                                                                              np.ones(1))[:8] + b"\x00\x00"}]}):
         refused(server, A, msgpack.packb({**good, **change}), "garbled")
     still_works(server)
 
@@ -164,3 +185,73 @@ def test_journal_refuses_foreign_files(tmp_path: Path) -> None:
         c.execute("CREATE TABLE t (x)")
     with pytest.raises(JournalError, match="not a fleet map database"):
         Journal(other)
+
+
+def test_marker_field_round_trip_and_restart() -> None:
+    ids, xy, sigma = np.array([7, 70000]), np.array([[0.4321, -0.9876], [-1.5, 0.25]]), np.array([0.01, 0.0123])
+    got_ids, got_xy, got_sigma = unpack_markers(pack_markers(ids, xy, sigma))
+    assert got_ids.tolist() == [7, 70000]
+    assert np.abs(got_xy - xy).max() <= 0.0005 and np.abs(got_sigma - sigma).max() <= 0.00005
+    kf = {**keyframe(0, np.random.default_rng(1)), "mk": pack_markers(ids, xy, sigma)}
+    d = parse_delta(decode(encode({"type": "delta", "drone": 0, "seq": 1, "keyframes": [kf], "edges": []})))
+    assert d.keyframes[0].mk == kf["mk"]
+
+
+def _marker_delta(drone: int, scale: float, rel: list[float], sigma: float) -> bytes:
+    """Five keyframes 1 m apart along x (reported with odometry scale ``scale``, edges of ``sigma``), the last
+    reading marker 9 at ``rel`` in its frame."""
+    rng = np.random.default_rng(drone)
+    kfs = [keyframe(k, rng) for k in range(5)]
+    for k in kfs:
+        k["pose"] = [scale * k["id"], 0.0, 0.0]
+    kfs[-1]["mk"] = pack_markers(np.array([9]), np.array([rel]), np.array([0.01]))
+    info = info_upper(np.diag([sigma**-2, sigma**-2, 400.0]))
+    return encode({"type": "delta", "drone": drone, "seq": 1, "keyframes": kfs,
+                   "edges": [{"a": k - 1, "b": k, "z": [scale, 0.0, 0.0], "info": info} for k in range(1, 5)]})
+
+
+@pytest.mark.parametrize("markers", [True, False])
+def test_a_marker_read_by_two_drones_ties_them(tmp_path: Path, markers: bool) -> None:
+    """Drone 0 (docked at y = 0, exact odometry of 1 cm) and drone 1 (docked at y = 1, odometry 20 % long, 30 cm)
+    both end at x = 4 over marker 9 at (4, 0.5). With the marker, drone 1's last keyframe is pulled to x = 4 (the
+    readings are 1 cm); without it, it stays at the 4.8 m its odometry says."""
+    s = MapServer(tmp_path / "m.db")
+    s.handle(A, encode({"type": "hello", "drone": 0, "session": "a", "dock": [0.0, 0.0, 0.0]}))
+    s.handle(B, encode({"type": "hello", "drone": 1, "session": "b", "dock": [0.0, 1.0, 0.0]}))
+    d0, d1 = _marker_delta(0, 1.0, [0.0, 0.5], 0.01), _marker_delta(1, 1.2, [0.0, -0.5], 0.3)
+    if not markers:  # the same deltas without their marker fields
+        d0, d1 = (encode({k: v for k, v in {**decode(d), "keyframes": [{f: x for f, x in kf.items() if f != "mk"}
+                                                                      for kf in decode(d)["keyframes"]]}.items()
+                          if k != "v"}) for d in (d0, d1))
+    assert decode(s.handle(A, d0))["type"] == "ack"
+    # drone 1 is reported in its own (dock) frame: y = 0 there is y = 1 in the warehouse
+    d1m = decode(d1)
+    for k in d1m["keyframes"]:
+        k["pose"][1] = 1.0
+    assert decode(s.handle(B, encode({k: v for k, v in d1m.items() if k != "v"})))["type"] == "ack"
+    s.joint.solve(10)
+    last = s.joint.drone_poses(1)[-1]
+    st = s.status()["markers"]
+    if markers:
+        assert abs(last[0] - 4.0) < 0.05 and st["count"] == 1 and st["shared"] == 1 and st["links"] == 1
+        assert s.journal.count("keyframe_markers") == 2
+    else:
+        assert abs(last[0] - 4.8) < 0.05 and st["count"] == 0
+    s.close()
+    s2 = MapServer(tmp_path / "m.db")  # restart: the markers come back from the journal
+    assert len(s2.joint.marker_ids) == (1 if markers else 0)
+    s2.close()
+
+
+def test_a_surveyed_marker_anchors_a_drifting_drone(tmp_path: Path) -> None:
+    """One drone, odometry 20 % long (30 cm edges), reads marker 9 from its last keyframe; the survey puts marker 9
+    at (4, 0.5): the last keyframe is pulled to x = 4 (without the survey, nothing contradicts the odometry)."""
+    from slam2d.fleet.joint import JointConfig
+
+    s = MapServer(tmp_path / "s.db", JointConfig(surveyed_markers=((9, 4.0, 0.5),)))
+    s.handle(B, encode({"type": "hello", "drone": 1, "session": "b", "dock": [0.0, 0.0, 0.0]}))
+    assert decode(s.handle(B, _marker_delta(1, 1.2, [0.0, 0.5], 0.3)))["type"] == "ack"
+    s.joint.solve(10)
+    assert abs(s.joint.drone_poses(1)[-1, 0] - 4.0) < 0.05
+    assert np.allclose(s.joint.markers[0], [4.0, 0.5], atol=0.01)
+    s.close()

@@ -37,6 +37,8 @@ def register(sub: Any) -> None:
                    help="simulated seconds per wall second (default 0: as fast as it computes)")
     d.add_argument("--blackout", default=None, metavar="START:SECONDS",
                    help="no link to the server from START for SECONDS (simulated time), e.g. 60:60")
+    d.add_argument("--floor-markers", action="store_true",
+                   help="fly with the scenario's floor markers (front end and deltas use them)")
     d.add_argument("--json", default=None, metavar="OUT", help="write the drone's record (bytes, poses) as JSON")
     d.set_defaults(func=cmd_drone)
 
@@ -108,7 +110,7 @@ def cmd_drone(args: argparse.Namespace) -> int:
     check_outputs(args, [], [("--json", args.json)])
     server = parse_server(args.server)
     cfg = DroneConfig(scenario=args.scenario, minutes=args.minutes, seed=args.seed, rate=args.rate,
-                      blackout=parse_blackout(args.blackout))
+                      blackout=parse_blackout(args.blackout), floor_markers=args.floor_markers)
     drone = Drone(server, args.drone, cfg, log=lambda s: print(s, file=sys.stderr, flush=True))
     result = drone.run()
     up = result.up_bytes

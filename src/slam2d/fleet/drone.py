@@ -2,7 +2,8 @@
 estimator: scan matching, keyframes, its own loops), and a ZeroMQ DEALER that sends only deltas to the map server.
 
 What a drone sends per delta (one every ``send_every_s`` simulated seconds): each new keyframe's pose in the drone's
-frame, a 17-byte range-histogram descriptor and at most 120 scan points as int16 centimetres; the odometry edge
+frame, a 17-byte range-histogram descriptor and at most 120 scan points as int16 centimetres, the floor markers
+read at the keyframe (10 bytes each; with ``floor_markers``); the odometry edge
 from the previous keyframe and the loops its own front end accepted. Deltas stay in the outbox until acknowledged:
 after a timeout or a blackout the drone opens a new connection, says hello, drops what the server reports committed
 and resends the rest in order (the server acknowledges a resend it already has without writing it again).
@@ -27,6 +28,7 @@ from slam2d.fleet.protocol import (
     encode,
     info_upper,
     pack_descriptor,
+    pack_markers,
     pack_points,
 )
 from slam2d.geometry import se2
@@ -34,6 +36,7 @@ from slam2d.graph.lidar import LidarSLAM, LidarSLAMConfig, scan_points
 from slam2d.maps.store import range_histogram
 from slam2d.sim.scenarios import ScenarioConfig
 from slam2d.sim.simulator import Simulator
+from slam2d.sim.warehouse import WarehouseConfig
 
 Array = NDArray[np.float64]
 
@@ -72,6 +75,9 @@ class DroneConfig:
     keyframe_distance_m: float = 1.0
     """the front end's keyframe spacing (m; the lidar estimator's own default is 0.3 m, for a single robot)."""
     keyframe_angle_rad: float = 0.5
+    floor_markers: bool = False
+    """fly with floor markers (the scenario's markers, read by the downward camera): the front end uses them and
+    the deltas carry each keyframe's readings."""
 
 
 def start_pose(sim: Simulator, drone: int) -> tuple[Array, Array]:
@@ -117,7 +123,8 @@ class Drone:
         self.config = cfg = config or DroneConfig()
         self.session = session or secrets.token_hex(8)
         self.log = log or (lambda s: None)
-        self.sim = Simulator(ScenarioConfig(name=cfg.scenario), seed=cfg.seed * 1000 + self.drone, record=False)
+        scenario = ScenarioConfig(name=cfg.scenario, warehouse=WarehouseConfig(floor_markers=cfg.floor_markers))
+        self.sim = Simulator(scenario, seed=cfg.seed * 1000 + self.drone, record=False)
         pose, wp = start_pose(self.sim, self.drone)
         self.sim.pose, self.sim.initial_pose, self.sim.waypoints = pose.copy(), pose.copy(), wp
         self.dock = pose
@@ -145,6 +152,7 @@ class Drone:
         self.acked_max = 0
         self.timeout_s = cfg.ack_timeout_s
         self.lost_acked = 0
+        self.marker_sightings = 0
 
     # ------------------------------------------------------------------ transport
     def _connect(self) -> None:
@@ -245,8 +253,9 @@ class Drone:
                 raise DroneError(f"server {self.server} refused drone {self.drone}: {msg.get('message')}")
 
     # ------------------------------------------------------------------ flying
-    def _collect(self, step_index: int, scan: Any) -> None:
-        """New keyframes and own loops of the last step into the pending delta."""
+    def _collect(self, step_index: int, scan: Any, markers: Any = None) -> None:
+        """New keyframes and own loops of the last step into the pending delta (``markers``: the step's floor-marker
+        readings, which a keyframe made at this step carries)."""
         n_before = len(self.kf_step)
         steps = self.est.keyframe_steps
         poses = self.est.keyframe_poses
@@ -256,6 +265,11 @@ class Drone:
             self.pending_kf.append({"id": k, "stamp": round(self.sim.time_s, 3), "pose": [float(v) for v in poses[k]],
                                     "desc": pack_descriptor(range_histogram(scan.ranges_m, scan.max_range_m)),
                                     "pts": pack_points(pts)})
+            if markers is not None and len(markers) and int(steps[k]) == step_index:
+                ids = np.asarray(markers.ids, np.int64)
+                sigma = np.full(len(ids), self.est.config.markers.camera.std_m)
+                self.pending_kf[-1]["mk"] = pack_markers(ids, markers.xy_m, sigma)
+                self.marker_sightings += len(ids)
             self.truth.append(self.sim.pose.copy())
             if k > 0:
                 self.pending_edges.append({"a": k - 1, "b": k, "z": [float(v) for v in
@@ -298,7 +312,7 @@ class Drone:
             s = self.sim.step(v, w)
             self.est.step(s)
             if s.scan is not None:
-                self._collect(s.index, s.scan)
+                self._collect(s.index, s.scan, s.markers)
         self._queue_delta()
         return True
 
@@ -347,4 +361,5 @@ class Drone:
         return DroneResult(self.drone, self.sim.index, n, self.deltas, max(self.reconnects, 0), self.errors, up, down,
                            np.asarray(self.truth).reshape(-1, 3), self.est.keyframe_poses[:n].copy(), merged,
                            self.tiles, {"lost_acked": self.lost_acked, "acked_max": self.acked_max,
-                                        "dock": self.dock.tolist()})
+                                        "dock": self.dock.tolist(), "marker_sightings": self.marker_sightings,
+                                        "marker_resightings": self.est.markers.resightings})

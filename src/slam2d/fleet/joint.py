@@ -12,6 +12,11 @@ local map (it and ``loop_map_keyframes`` neighbours on each side) with the score
 estimator, then point-to-line ICP with its fitness, residual and covariance gates and the chi-square agreement gate
 (defaults taken from :class:`~slam2d.graph.lidar.LidarSLAMConfig`, not tuned here).
 
+Floor markers: a keyframe's marker sightings (ids read from the tags, so association is certain) are ``point``
+factors to one shared node per marker id. A marker read by two drones ties them with no search and no ambiguity, along
+an aisle as well as across it; one read again by the same drone ``marker_resight_keyframes`` later closes its loop.
+Either counts as a loop for the solve schedule.
+
 Optimisation: Gauss-Newton on the whole joint graph from the current estimate, after every update that brought a
 loop (inter-robot or a drone's own) and every ``solve_every`` keyframes otherwise.
 """
@@ -26,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam2d.fleet.journal import LoopRow
-from slam2d.fleet.protocol import Edge, Keyframe, info_matrix, unpack_descriptor, unpack_points
+from slam2d.fleet.protocol import Edge, Keyframe, info_matrix, unpack_descriptor, unpack_markers, unpack_points
 from slam2d.frontend.correlative import CorrelativeConfig, correlative_match
 from slam2d.frontend.icp import icp
 from slam2d.geometry import se2
@@ -74,6 +79,13 @@ class JointConfig:
     drones run faster than real time)."""
     solve_iterations: int = 3
     """Gauss-Newton iterations per solve (warm-started from the current estimate)."""
+    marker_resight_keyframes: int = 10
+    """a drone reading a marker again this many of its keyframes after its last reading of it closes a loop."""
+    surveyed_markers: tuple[tuple[int, float, float], ...] = ()
+    """floor markers whose warehouse positions were surveyed, (id, x, y): each gets a prior of ``survey_sigma_m``
+    (empty: markers are landmarks placed by the drones alone, which fixes consistency but not drift)."""
+    survey_sigma_m: float = 0.01
+    """standard deviation of a surveyed marker position (m)."""
     tile_m: float = 10.0
     """side of a map tile (m)."""
     tile_resolution_m: float = 0.2
@@ -122,6 +134,17 @@ class JointGraph:
         self.tile_version: dict[tuple[int, int], int] = {}
         self._rasters: dict[tuple[int, int], tuple[int, bytes]] = {}
         self._version = 0
+        self.marker_ids: list[int] = []
+        self._marker_slot: dict[int, int] = {}
+        self.markers = np.zeros((0, 2))
+        self._mk_key: list[int] = []  # per sighting: node key, marker slot, z (2,), sigma (m)
+        self._mk_slot: list[int] = []
+        self._mk_z: list[Array] = []
+        self._mk_sigma: list[float] = []
+        self.marker_last: dict[tuple[int, int], int] = {}  # (marker slot, drone) -> its newest reading keyframe
+        self.marker_links = 0  # sightings of a marker another drone had read
+        self.marker_resightings = 0  # a drone reading a marker again after marker_resight_keyframes
+        self._survey = {int(i): np.array([x, y], np.float64) for i, x, y in self.config.surveyed_markers}
 
     # ------------------------------------------------------------------ building
     def add_drone(self, drone: int, dock: Array) -> None:
@@ -156,11 +179,48 @@ class JointGraph:
             own.extend(new)
             for key in new:
                 self._touch(key)
+            for key, k in zip(new, kfs, strict=True):
+                if k.mk:
+                    self._add_markers(drone, key, k)
         for e in edges:
             self._add_factor(own[e.a], own[e.b], e.z, info_matrix(e.info))
             self._loops_pending |= abs(e.b - e.a) > 1
         self._since_solve += len(kfs)
         return new
+
+    def _add_markers(self, drone: int, key: int, kf: Keyframe) -> None:
+        """The marker sightings of node ``key``: factors to shared marker nodes (a new one starts at the node's
+        estimate composed with the sighting)."""
+        ids, xy, sigma = unpack_markers(kf.mk)
+        for mid, z, sg in zip(ids.tolist(), xy, sigma.tolist(), strict=True):
+            s = self._marker_slot.get(mid)
+            if s is None:
+                s = self._marker_slot[mid] = len(self.marker_ids)
+                self.marker_ids.append(mid)
+                start = self._survey.get(mid)
+                if start is None:
+                    start = se2.transform_points(self.poses[key], z[None])[0]
+                self.markers = np.vstack([self.markers, start[None]])
+            others = any(d != drone for (m, d) in self.marker_last if m == s)
+            last = self.marker_last.get((s, drone))
+            if others:
+                self.marker_links += 1
+            resight = last is not None and kf.id - last >= self.config.marker_resight_keyframes
+            self.marker_resightings += resight
+            if others or resight or mid in self._survey:  # a surveyed marker is an absolute fix
+                self._loops_pending = True
+            self.marker_last[(s, drone)] = kf.id
+            self._mk_key.append(key)
+            self._mk_slot.append(s)
+            self._mk_z.append(z)
+            self._mk_sigma.append(sg)
+
+    def marker_drones(self) -> dict[int, list[int]]:
+        """Marker id -> the drones that read it."""
+        out: dict[int, list[int]] = {}
+        for s, d in sorted(self.marker_last):
+            out.setdefault(self.marker_ids[s], []).append(d)
+        return out
 
     def _add_factor(self, i: int, j: int, z: Array, info: Array) -> None:
         self._ei.append(i)
@@ -260,17 +320,28 @@ class JointGraph:
         firsts = [own[0] for own in self.keys.values() if own]
         prior_info = np.diag([cfg.prior_sigma_xy_m**-2, cfg.prior_sigma_xy_m**-2, cfg.prior_sigma_theta_rad**-2])
         g.add_prior(np.asarray(firsts), self.reported[firsts], np.repeat(prior_info[None], len(firsts), axis=0))
+        if self._mk_key:
+            sig = np.asarray(self._mk_sigma)
+            g.add_point(np.asarray(self._mk_key), np.asarray(self._mk_slot), np.asarray(self._mk_z),
+                        np.eye(2)[None] / sig[:, None, None] ** 2)
+        known = [(s, self._survey[m]) for s, m in enumerate(self.marker_ids) if m in self._survey]
+        if known:
+            g.add_point_prior(np.asarray([s for s, _ in known]), np.asarray([xy for _, xy in known]),
+                              np.repeat(np.eye(2)[None] / cfg.survey_sigma_m**2, len(known), axis=0))
         before = self.poses.copy()
-        out, _ = optimize(g, Values(np.arange(len(self.poses)), self.poses),
+        out, _ = optimize(g, Values(np.arange(len(self.poses)), self.poses, np.arange(len(self.markers)),
+                                    self.markers),
                           OptimizerConfig(method="gn", max_iterations=iterations or cfg.solve_iterations,
                                           gauge="none"))
         self.poses = np.asarray(out.poses, np.float64).copy()
+        if len(self.markers):
+            self.markers[out.point_keys] = out.points
         moved = np.flatnonzero(np.hypot(*(self.poses[:, :2] - before[:, :2]).T) > 0.02)
         for k in moved.tolist():
             self._touch(k)
         self._since_solve = 0
         self._loops_pending = False
-        rec = SolveRecord(len(self.poses), len(self._ei) + len(firsts), time.perf_counter() - t0)
+        rec = SolveRecord(len(self.poses), len(self._ei) + len(firsts) + len(self._mk_key), time.perf_counter() - t0)
         self.solves.append(rec)
         return rec
 

@@ -25,7 +25,7 @@ import numpy as np
 from slam2d.fleet.protocol import Delta, Edge, Keyframe
 
 APPLICATION_ID = int.from_bytes(b"S2DF", "big")
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: floor-marker sightings of keyframes (a version-1 file gains the table when opened)
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS drones (drone INTEGER PRIMARY KEY, session TEXT NOT NULL, x REAL NOT NULL,
@@ -35,6 +35,8 @@ CREATE TABLE IF NOT EXISTS deltas (drone INTEGER NOT NULL, seq INTEGER NOT NULL,
 CREATE TABLE IF NOT EXISTS keyframes (drone INTEGER NOT NULL, id INTEGER NOT NULL, stamp REAL NOT NULL,
                                       x REAL NOT NULL, y REAL NOT NULL, theta REAL NOT NULL, descriptor BLOB NOT NULL,
                                       points BLOB NOT NULL, PRIMARY KEY (drone, id));
+CREATE TABLE IF NOT EXISTS keyframe_markers (drone INTEGER NOT NULL, id INTEGER NOT NULL, markers BLOB NOT NULL,
+                                             PRIMARY KEY (drone, id));
 CREATE TABLE IF NOT EXISTS edges (drone INTEGER NOT NULL, a INTEGER NOT NULL, b INTEGER NOT NULL, dx REAL NOT NULL,
                                   dy REAL NOT NULL, dtheta REAL NOT NULL, information BLOB NOT NULL);
 CREATE TABLE IF NOT EXISTS loops (id INTEGER PRIMARY KEY, drone_a INTEGER NOT NULL, a INTEGER NOT NULL,
@@ -123,9 +125,11 @@ class Journal:
         return None if r is None else str(r[0])
 
     def keyframes(self, drone: int) -> list[Keyframe]:
-        rows = self.db.execute("SELECT id, stamp, x, y, theta, descriptor, points FROM keyframes WHERE drone=? "
-                               "ORDER BY id", (drone,)).fetchall()
-        return [Keyframe(r[0], r[1], np.array(r[2:5]), bytes(r[5]), bytes(r[6])) for r in rows]
+        rows = self.db.execute("SELECT k.id, k.stamp, k.x, k.y, k.theta, k.descriptor, k.points, m.markers FROM "
+                               "keyframes k LEFT JOIN keyframe_markers m ON m.drone = k.drone AND m.id = k.id "
+                               "WHERE k.drone=? ORDER BY k.id", (drone,)).fetchall()
+        return [Keyframe(r[0], r[1], np.array(r[2:5]), bytes(r[5]), bytes(r[6]), bytes(r[7] or b""))
+                for r in rows]
 
     def edges(self, drone: int) -> list[Edge]:
         rows = self.db.execute("SELECT a, b, dx, dy, dtheta, information FROM edges WHERE drone=? ORDER BY rowid",
@@ -139,7 +143,7 @@ class Journal:
                         r[8]) for r in rows]
 
     def count(self, table: str) -> int:
-        assert table in ("drones", "deltas", "keyframes", "edges", "loops")
+        assert table in ("drones", "deltas", "keyframes", "keyframe_markers", "edges", "loops")
         return int(self.db.execute(f"SELECT count(*) FROM {table}").fetchone()[0])
 
     # ------------------------------------------------------------------ writes (one transaction each)
@@ -152,6 +156,8 @@ class Journal:
             db.execute("INSERT INTO deltas VALUES (?, ?, ?)", (d.drone, d.seq, d.digest))
             db.executemany("INSERT INTO keyframes VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                            [(d.drone, k.id, k.stamp, *map(float, k.pose), k.desc, k.pts) for k in d.keyframes])
+            db.executemany("INSERT INTO keyframe_markers VALUES (?, ?, ?)",
+                           [(d.drone, k.id, k.mk) for k in d.keyframes if k.mk])
             db.executemany("INSERT INTO edges VALUES (?, ?, ?, ?, ?, ?, ?)",
                            [(d.drone, e.a, e.b, *map(float, e.z), np.asarray(e.info, "<f8").tobytes())
                             for e in d.edges])

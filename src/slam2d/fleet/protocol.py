@@ -4,7 +4,7 @@ Every message is one msgpack map with ``v`` (protocol version) and ``type``. Dro
 
 * ``hello``  {drone, session, dock [x, y, theta]}: claim drone id ``drone``; the server answers ``welcome``
   {acked_seq, keyframes} (what it has committed from this drone) or ``error``.
-* ``delta``  {drone, seq, keyframes [{id, stamp, pose, desc, pts}], edges [{a, b, z, info}]}: new keyframes (ids
+* ``delta``  {drone, seq, keyframes [{id, stamp, pose, desc, pts, mk?}], edges [{a, b, z, info}]}: new keyframes (ids
   consecutive from the number already committed) and edges between this drone's keyframes (odometry chain and its
   own loop closures). ``seq`` counts from 1 per drone. Answered by ``ack`` {seq, duplicate, poses, tiles} only
   after the delta is committed; a resend of a committed delta (same seq, same content) is acknowledged again and
@@ -15,6 +15,9 @@ Server -> client errors: ``error`` {code, message, seq?}; they concern the one c
 
 A keyframe carries no raw scan: ``desc`` is a 17-byte range histogram (uint8, fraction of beams per range bin * 255)
 and ``pts`` a subsampled point set in the keyframe frame as little-endian int16 centimetres (x0 y0 x1 y1 ...).
+``mk`` (optional, version 2) holds the floor markers the keyframe read: 10 bytes each, little-endian, uint32 id,
+int16 x and y in millimetres in the keyframe frame, uint16 standard deviation in 0.1 mm (at most ``MAX_MARKERS``,
+ids distinct). Version 2 is version 1 plus ``mk``; a version-1 peer is refused (it would drop the markers).
 """
 
 from __future__ import annotations
@@ -29,12 +32,16 @@ from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
 
-VERSION = 1
+VERSION = 2
 MAX_MESSAGE_BYTES = 4 << 20
 DESC_BINS = 16
 MAX_POINTS = 120
 POINT_SCALE = 100.0  # int16 centimetres: +-327 m
 MAX_ITEMS = 4096  # keyframes or edges per delta
+MAX_MARKERS = 32  # marker sightings per keyframe
+MARKER_DTYPE = np.dtype([("id", "<u4"), ("x", "<i2"), ("y", "<i2"), ("sigma", "<u2")])
+MARKER_SCALE = 1000.0  # int16 millimetres: +-32 m
+SIGMA_SCALE = 1e4  # uint16 tenths of a millimetre: up to 6.5 m
 
 
 class ProtocolError(ValueError):
@@ -91,6 +98,7 @@ class Keyframe:
     pose: Array  # (3,) in the drone's frame
     desc: bytes
     pts: bytes
+    mk: bytes = b""  # floor markers read (MARKER_DTYPE records)
 
 
 @dataclass(frozen=True)
@@ -134,8 +142,10 @@ def parse_delta(msg: dict[str, Any]) -> Delta:
             raise ProtocolError("garbled", f"delta {seq}: keyframes[{i}].pts must be at most {MAX_POINTS} int16 "
                                            "pairs", seq)
         stamp = _floats([k.get("stamp")], 1, f"delta {seq}: keyframes[{i}].stamp")[0]
+        mk = k.get("mk", b"")
+        check_markers(mk, f"delta {seq}: keyframes[{i}].mk", seq)
         out_k.append(Keyframe(_int(k, "id"), float(stamp), _floats(k.get("pose"), 3, f"keyframes[{i}].pose"),
-                              desc, pts))
+                              desc, pts, mk))
     ids = [k.id for k in out_k]
     if ids and ids != list(range(ids[0], ids[0] + len(ids))):
         raise ProtocolError("garbled", f"delta {seq}: keyframe ids must be consecutive (got {ids[:5]}...)", seq)
@@ -152,6 +162,35 @@ def parse_delta(msg: dict[str, Any]) -> Delta:
         out_e.append(Edge(a, b, _floats(e.get("z"), 3, f"delta {seq}: edges[{i}].z"), info))
     body = msgpack.packb([msg.get("keyframes"), msg.get("edges")], use_bin_type=True)
     return Delta(drone, seq, tuple(out_k), tuple(out_e), hashlib.sha256(body).hexdigest())
+
+
+def check_markers(mk: Any, what: str, seq: int | None = None) -> None:
+    """Refuse a marker field that is not whole records, too many, repeated ids or a non-positive sigma."""
+    if not isinstance(mk, bytes) or len(mk) % MARKER_DTYPE.itemsize or len(mk) > MAX_MARKERS * MARKER_DTYPE.itemsize:
+        raise ProtocolError("garbled", f"{what} must be at most {MAX_MARKERS} records of {MARKER_DTYPE.itemsize} "
+                                       "bytes", seq)
+    rec = np.frombuffer(mk, MARKER_DTYPE)
+    if len(np.unique(rec["id"])) != len(rec):
+        raise ProtocolError("garbled", f"{what} repeats a marker id", seq)
+    if np.any(rec["sigma"] == 0):
+        raise ProtocolError("garbled", f"{what} has a marker with zero standard deviation", seq)
+
+
+def pack_markers(ids: NDArray[np.int64], xy: Array, sigma: Array) -> bytes:
+    """Marker sightings (K,) ids, (K,2) keyframe-frame positions (m), (K,) standard deviations (m) as ``mk``."""
+    rec = np.zeros(len(ids), MARKER_DTYPE)
+    rec["id"] = ids
+    q = np.clip(np.round(np.asarray(xy, np.float64).reshape(-1, 2) * MARKER_SCALE), -32767, 32767)
+    rec["x"], rec["y"] = q[:, 0], q[:, 1]
+    rec["sigma"] = np.clip(np.round(np.asarray(sigma, np.float64) * SIGMA_SCALE), 1, 65535)
+    return rec.tobytes()
+
+
+def unpack_markers(mk: bytes) -> tuple[NDArray[np.int64], Array, Array]:
+    """(ids (K,), xy (K,2) m, sigma (K,) m) of a ``mk`` field."""
+    rec = np.frombuffer(mk, MARKER_DTYPE)
+    xy = np.stack([rec["x"], rec["y"]], axis=-1).astype(np.float64) / MARKER_SCALE
+    return rec["id"].astype(np.int64), xy.reshape(-1, 2), rec["sigma"].astype(np.float64) / SIGMA_SCALE
 
 
 def info_matrix(upper: Array) -> Array:

@@ -197,7 +197,11 @@ class MapServer:
             loops.append({"a": [lp.drone_a, lp.a], "b": [lp.drone_b, lp.b], "stamp": lp.stamp,
                           "xy": [float(pa[0]), float(pa[1]), float(pb[0]), float(pb[1])]})
         solves = self.joint.solves[-50:]
-        return {"type": "status", "drones": drones, "loops": loops, "errors": self.errors,
+        j = self.joint
+        shared = sum(len(ds) > 1 for ds in j.marker_drones().values())
+        markers = {"count": len(j.marker_ids), "shared": shared, "sightings": len(j._mk_key),
+                   "links": j.marker_links, "resightings": j.marker_resightings}
+        return {"type": "status", "drones": drones, "loops": loops, "errors": self.errors, "markers": markers,
                 "solves": [[s.nodes, s.edges, round(s.seconds, 5)] for s in solves],
                 "uptime_s": round(now - self.started, 1)}
 

@@ -18,6 +18,9 @@ Per step (one scan):
    the step brought a loop, a whole-graph iteration every ``graph.full_every`` keyframes, the whole graph to
    convergence in ``finalize`` (bounded work per scan; no full re-analysis when one node is added).
 
+Floor markers (when steps carry readings): marker nodes in the graph, each reading a factor from its keyframe, a
+marker read again long after a loop-like solve (:mod:`slam2d.graph.lidar_markers`).
+
 Every scan's pose is its keyframe's estimate composed with its tracked pose relative to that keyframe, so the whole
 trajectory follows the graph. Steps without a scan are placed by odometry.
 
@@ -44,6 +47,7 @@ from slam2d.frontend.icp import ICPTarget, icp, prepare_target
 from slam2d.geometry import se2
 from slam2d.graph.incremental import IncrementalPoseGraph
 from slam2d.graph.lidar_config import LidarSLAMConfig, LifelongLidarConfig
+from slam2d.graph.lidar_markers import KeyframeMarkers, MarkerPoseGraph
 from slam2d.log import Scan, Step
 from slam2d.maps.layers import DYNAMIC, LayerStats, MapLayers, PoseBuffer
 from slam2d.maps.occupancy import OccupancyConfig, OccupancyGrid
@@ -103,6 +107,7 @@ class LidarSLAM(EstimatorLifecycle):
         self._kf_xy = np.zeros((0, 2))
         self._labels: tuple[Array, NDArray[np.int8]] = (np.zeros((0, 2)), np.zeros(0, np.int8))
         self.dynamic_points_total = 0
+        self.markers = KeyframeMarkers(self.config.markers)  # floor markers (graph/lidar_markers.py)
 
     @property
     def keyframe_poses(self) -> Array:
@@ -114,6 +119,14 @@ class LidarSLAM(EstimatorLifecycle):
 
     def step(self, step: Step) -> None:
         self._check_step()
+        self._step_scan(step)
+        if step.markers is not None and self.config.markers.enabled and self.layers is None \
+                and isinstance(self.graph, MarkerPoseGraph) \
+                and self.markers.observe(self.graph, self._owner[-1], self._rel[-1], step.markers):
+            self._version += 1  # a re-sighting moved the keyframes
+            self._pose = se2.compose(self.graph.poses[self._owner[-1]], self._rel[-1])
+
+    def _step_scan(self, step: Step) -> None:
         cfg = self.config
         self.steps += 1
         self._new_loops = ()
@@ -177,7 +190,7 @@ class LidarSLAM(EstimatorLifecycle):
         cfg = self.config
         k = len(self._kf_step)
         if self.graph is None:
-            self.graph = IncrementalPoseGraph(pose, cfg.graph)
+            self.graph = MarkerPoseGraph(pose, cfg.graph)
         else:
             prev = self.graph.poses[-1]
             floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
@@ -227,7 +240,7 @@ class LidarSLAM(EstimatorLifecycle):
         cfg = self.config
         k = len(self._kf_step)
         if self.graph is None:
-            self.graph = IncrementalPoseGraph(pose, cfg.graph)
+            self.graph = MarkerPoseGraph(pose, cfg.graph)
         self._kf_step.append(index)
         self._kf_points.append(pts)
         assert scan is not None
@@ -476,7 +489,7 @@ class LidarSLAM(EstimatorLifecycle):
         cfg = self.config
         order = np.argsort(-np.hypot(*(poses[:, :2] - pose[:2]).T), kind="stable")
         stiff = np.diag([1 / 0.01**2, 1 / 0.01**2, 1 / 0.002**2])[None]
-        self.graph = IncrementalPoseGraph(poses[order[0]], cfg.graph)
+        self.graph = MarkerPoseGraph(poses[order[0]], cfg.graph)
         for n, k in enumerate(order.tolist()):
             if n:
                 z = se2.between(poses[order[n - 1]], poses[k])[None]

@@ -8,6 +8,7 @@ from slam2d.config import check_positive
 from slam2d.frontend.correlative import CorrelativeConfig
 from slam2d.frontend.icp import ICPConfig
 from slam2d.graph.incremental import IncrementalConfig
+from slam2d.graph.lidar_markers import MarkerSettings
 from slam2d.maps.layers import LayersConfig
 
 __all__ = ["LidarSLAMConfig", "LifelongLidarConfig"]
@@ -98,6 +99,8 @@ class LidarSLAMConfig:
     graph: IncrementalConfig = field(default_factory=lambda: IncrementalConfig(
         window=30, loop_neighbourhood=3, iterations=3, full_every=200, loop_kernel=None))
     """incremental pose-graph settings (in keyframes)."""
+    markers: MarkerSettings = field(default_factory=MarkerSettings)
+    """floor markers (used when steps carry readings): marker nodes and re-sighting solves."""
     map_resolution_m: float = 0.05
     """cell size of the occupancy map (m)."""
     layers: LayersConfig | None = None

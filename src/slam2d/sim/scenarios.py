@@ -85,7 +85,10 @@ class ScenarioConfig:
         for n in ("landmarks", "moving_objects"):
             if getattr(self, n) is not None and n not in spec.defaults:
                 raise ValueError(f"ScenarioConfig.{n} cannot be set for scenario {self.name!r}")
-        if self.warehouse != WarehouseConfig() and not spec.uses_warehouse:
+        wh = self.warehouse
+        if spec.floor_markers:  # only the marker fields apply to this layout
+            wh = dataclasses.replace(wh, floor_markers=False, marker_spacing_m=WarehouseConfig().marker_spacing_m)
+        if wh != WarehouseConfig() and not spec.uses_warehouse:
             raise ValueError(f"ScenarioConfig.warehouse cannot be set for scenario {self.name!r} (only for "
                              f"{sorted(k for k, s in SCENARIOS.items() if s.uses_warehouse)})")
         if spec.check is not None:
@@ -172,6 +175,8 @@ class ScenarioSpec:
     """lidar fields this scenario presets (see ``ScenarioConfig.lidar``)."""
     uses_warehouse: bool = False
     """whether ``ScenarioConfig.warehouse`` applies."""
+    floor_markers: bool = False
+    """whether the floor-marker fields of ``ScenarioConfig.warehouse`` (and only those) apply."""
 
 
 def _random_landmarks(rng: np.random.Generator, n: int, box: tuple[float, float, float, float],
@@ -249,7 +254,12 @@ def _warehouse(cfg: ScenarioConfig, rng: np.random.Generator) -> Layout:
         MovingObject(np.array([[6.0, y + 0.9], [34.0, y + 0.9]]), speed_mps=0.8 + 0.1 * i)
         for i, y in enumerate(aisles[1:4][: int(cfg.moving_objects if cfg.moving_objects is not None else 3)])
     )
-    world = World(lm, np.arange(len(lm)), np.vstack(walls), moving=movers, bounds=(0, 0, 40, 30))
+    markers = np.zeros((0, 2))
+    if cfg.warehouse.floor_markers:  # along every aisle's centre line, from its start every marker_spacing_m
+        along = np.arange(4.0, 36.0 + 1e-9, cfg.warehouse.marker_spacing_m)
+        markers = np.stack(np.meshgrid(along, aisles, indexing="ij"), axis=-1).reshape(-1, 2)
+    world = World(lm, np.arange(len(lm)), np.vstack(walls), moving=movers, bounds=(0, 0, 40, 30),
+                  floor_markers=markers)
     return Layout(world, route_arr, np.array([4.0, 3.0, 0.0]))
 
 
@@ -342,7 +352,7 @@ SCENARIOS: dict[str, ScenarioSpec] = {
                          dict(steps=460, dt_s=0.25, speed_mps=2.0, landmarks=100), _loop),
     "warehouse": ScenarioSpec("warehouse", "repetitive shelf aisles with moving forklifts",
                               dict(steps=600, dt_s=0.2, speed_mps=1.2, moving_objects=3), _warehouse,
-                              check=_check_warehouse),
+                              check=_check_warehouse, floor_markers=True),
     "warehouse-challenge": ScenarioSpec(
         "warehouse-challenge", "100 x 100 m, 14 identical aisles, pallets moved between flights, 20 forklifts",
         dict(steps=1800, dt_s=1.0 / 30.0, speed_mps=1.2, moving_objects=20), _warehouse_challenge,
