@@ -68,10 +68,18 @@ def _describe(s: ConsistencySummary) -> str:
 FASTSLAM_DEGENERATES = pytest.mark.xfail(strict=True, reason="FastSLAM's particle paths coalesce (see comment)")
 
 
+#: the known failure is confirmed on part of the shared logs (it fails by a wide margin: 15 % / 7 % of steps inside,
+#: mean NEES 11 / 23 on 10 seeds x 100 steps), which saves CI time; a fix still shows as XPASS(strict)
+DEGENERATE_SEEDS, DEGENERATE_STEPS = 10, 100
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["ekf", "graph", pytest.param("fastslam2", marks=FASTSLAM_DEGENERATES)])
 def test_pose_nees_inside_the_chi2_band(name, logs):
-    s = pose_nees(name, logs, {})
+    if name == "fastslam2":
+        s = pose_nees(name, logs[:DEGENERATE_SEEDS], {}, steps=DEGENERATE_STEPS)
+    else:
+        s = pose_nees(name, logs, {})
     print(f"{name} {logs[0].metadata.get('scenario', '')}: {_describe(s)}")
     assert s.fraction_inside >= 0.9, f"{name}: {_describe(s)}"
 
