@@ -152,16 +152,17 @@ class FastSLAMConfig:
     """the same for confirmed landmarks (0: never)."""
     miss_rule: str = "evidence"
     """per-particle ML: the tracks' miss rule (:class:`~slam2d.association.tracks.TrackConfig`). The defaults
-    (evidence, 2 / 2) are FastSLAM's existence counter from before the shared tracker, exactly (start 2/p_d, +1/p_d
-    per sighting, -1 per miss; ``tests/unit/test_tracks.py``): neither rule wins on the data used for choosing
-    (below: ATE and map RMSE mixed, fewer duplicate landmarks with the evidence rule), so FastSLAM's behaviour is
-    kept. Against the tracker's first FastSLAM defaults (consecutive misses, 3 / 0: a confirmed landmark is never
-    pruned), one seed each, without ids; MRCLAM 7 robots 1-5, ATE / dead reckoning: FastSLAM 1.0 (300 particles)
-    0.09 0.37 0.46 0.36 0.49 (mean 0.35) against 0.22 0.51 0.42 0.29 0.39 (0.37), 2.0 (100) 0.26 0.26 0.48 0.71
-    0.87 (0.52) against 0.22 0.42 0.58 0.31 0.76 (0.46); maps of 12-32 landmarks for the 15 true ones (21-49 with
-    3 / 0: duplicates are never pruned), map RMSE better on 3 of the 10 runs, worse on 5. Simulated (p_d = 1, no
-    clutter; 5 seeds, mean ATE in m, 1.0 / 2.0): room 0.024 / 0.027 against 0.023 / 0.026, warehouse 0.067 /
-    0.081 against 0.069 / 0.074, loop 0.45 / 0.70 against 0.40 / 0.58. Victoria Park was held out (README)."""
+    (evidence, 2 / 2) are FastSLAM's existence counter from before the shared tracker (start ceil(2/p_d),
+    +round(1/p_d) per sighting, -1 per miss; the start was 2 round(1/p_d); ``tests/unit/test_tracks.py``). Neither
+    rule wins on the data used for choosing (below: ATE and map RMSE mixed, fewer duplicate landmarks with the
+    evidence rule), so FastSLAM's behaviour is kept. Against the tracker's first FastSLAM defaults (consecutive
+    misses, 3 / 0: a confirmed landmark is never pruned), one seed each, without ids; MRCLAM 7 robots 1-5, ATE /
+    dead reckoning: FastSLAM 1.0 (300 particles) 0.09 0.37 0.46 0.36 0.49 (mean 0.35) against 0.22 0.51 0.42 0.29
+    0.39 (0.37), 2.0 (100) 0.26 0.26 0.48 0.71 0.87 (0.52) against 0.22 0.42 0.58 0.31 0.76 (0.46); maps of 12-32
+    landmarks for the 15 true ones (21-49 with 3 / 0: duplicates are never pruned), map RMSE better on 3 of the 10
+    runs, worse on 5. Simulated (p_d = 1, no clutter; 5 seeds, mean ATE in m, 1.0 / 2.0): room 0.024 / 0.027
+    against 0.023 / 0.026, warehouse 0.067 / 0.081 against 0.069 / 0.074, loop 0.45 / 0.70 against 0.40 / 0.58.
+    Victoria Park was held out (README)."""
     view_margin_m: float = 0.5
     """"well inside the view": predicted range <= max_range_m - view_margin_m (and inside the field of view)."""
     dynamic_test: bool = False
