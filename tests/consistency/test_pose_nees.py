@@ -64,14 +64,27 @@ def _describe(s: ConsistencySummary) -> str:
 #: algorithm", ICRA 2006). Measured here: mean NEES 145 (room) and 577 (loop), 6% / 4% of steps inside the band;
 #: the final particles of a room run have 43 distinct ancestors 5 steps back, 8 at 20 and 1.4 at 80 (5 seeds);
 #: more particles only delay it (room, 10 seeds, 120 steps: 100 particles mean NEES 232, 1000 particles 48, in the
-#: band for the first 30 steps only). strict: a fix shows up as a failure of this marker.
+#: band for the first 30 steps only). Not the cause (checked): the proposal and the weight (with H_x P H_x^T) match
+#: a brute-force posterior (tests/unit/test_fastslam.py); over the first 15 steps (30 seeds) 1000 particles give mean
+#: NEES 2.96 room / 3.06 loop, as the EKF (2.89 / 3.11), 100 particles 3.44 / 3.87; the Rao-Blackwellised mixture
+#: covariance sum_i w_i (P_i + d_i d_i^T) of the proposals before the draw changes little (10 seeds x 100 steps: mean
+#: NEES 10.2 against 10.7 room, 22.3 against 23.0 loop); nor does the resampling threshold (same runs, room / loop:
+#: resampling every step 17.4 / 10.5, never 2816 / 1296). strict: a fix shows up as a failure of this marker.
 FASTSLAM_DEGENERATES = pytest.mark.xfail(strict=True, reason="FastSLAM's particle paths coalesce (see comment)")
+
+
+#: the known failure is confirmed on part of the shared logs (10 seeds x 100 steps: 15 % / 7 % of steps inside, mean
+#: NEES 10.7 / 23.0), which saves CI time; a fix still shows as XPASS(strict) -- then drop the marker and this cut
+DEGENERATE_SEEDS, DEGENERATE_STEPS = 10, 100
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["ekf", "graph", pytest.param("fastslam2", marks=FASTSLAM_DEGENERATES)])
 def test_pose_nees_inside_the_chi2_band(name, logs):
-    s = pose_nees(name, logs, {})
+    if name == "fastslam2":
+        s = pose_nees(name, logs[:DEGENERATE_SEEDS], {}, steps=DEGENERATE_STEPS)
+    else:
+        s = pose_nees(name, logs, {})
     print(f"{name} {logs[0].metadata.get('scenario', '')}: {_describe(s)}")
     assert s.fraction_inside >= 0.9, f"{name}: {_describe(s)}"
 

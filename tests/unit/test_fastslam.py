@@ -154,6 +154,50 @@ def test_proposal_update_equals_the_information_form_of_montemerlo_2003(rng):
         assert ll[i] == pytest.approx(ll_ref, rel=1e-9)
 
 
+def test_proposal_and_weight_match_a_brute_force_posterior_over_pose_and_map(rng):
+    """Two observations of two uncertain landmarks, folded in one after the other as the filter does, against plain
+    importance sampling of the joint (pose, landmarks) prior: the sequential proposal's mean and covariance are the
+    pose posterior's, and the product of the two predictive likelihoods is the evidence p(z1, z2) (the weight).
+    Small noise keeps the problem close to linear, so the Gaussian answers should hold to Monte-Carlo error."""
+    x_hat = np.array([0.3, -0.2, 0.4])
+    p0 = np.diag([0.04, 0.03, 0.02]) ** 2 + 1e-5
+    mus = np.array([[3.0, 1.5], [1.0, 3.5]])
+    sigs = np.array([[[0.03, 0.004], [0.004, 0.02]], [[0.02, -0.003], [-0.003, 0.025]]]) ** 2
+    r = np.diag([0.05, 0.01]) ** 2
+    # fixed data: the robot one prior sigma off the prediction, a one-sigma sensor error on each observation
+    truth_x = x_hat + np.sqrt(np.diag(p0)) * np.array([1.0, -1.0, 1.0])
+    z = np.array([range_bearing(truth_x, mus[j]) for j in range(2)]) + np.sqrt(np.diag(r)) * np.array([1.0, -1.0])
+    mean, cov, ll_sum = x_hat[None], p0[None], 0.0
+    for j in range(2):
+        mean, cov, ll = proposal_update(mean, cov, z[j], mus[j][None], sigs[j][None], r)
+        ll_sum += float(ll[0])
+    n = 400_000
+    xs = x_hat + rng.multivariate_normal(np.zeros(3), p0, size=n)
+    logw = np.zeros(n)
+    for j in range(2):
+        ms = mus[j] + rng.multivariate_normal(np.zeros(2), sigs[j], size=n)
+        zh = range_bearing(xs, ms)
+        nu = np.column_stack([z[j, 0] - zh[:, 0], angle_diff(z[j, 1], zh[:, 1])])
+        logw += multivariate_normal(np.zeros(2), r).logpdf(nu)
+    w = np.exp(logw - logw.max())
+    evidence = logsumexp(logw) - math.log(n)
+    w /= w.sum()
+    n_eff = 1.0 / np.sum(w * w)
+    assert n_eff > 2000  # enough effective draws for the tolerances below
+    post_mean = w @ xs
+    d = xs - post_mean
+    post_cov = (w[:, None] * d).T @ d
+    sd = np.sqrt(np.diag(post_cov))
+    assert np.all(np.abs(mean[0] - post_mean) < 0.05 * sd + 4 * sd / math.sqrt(n_eff))
+    np.testing.assert_allclose(cov[0], post_cov, atol=0.06 * np.outer(sd, sd).max())
+    assert ll_sum == pytest.approx(evidence, abs=0.05)
+    # power: the prior alone, or a weight without the pose term H_x P H_x^T, is clearly different
+    assert np.abs(p0 - post_cov).max() > 0.3 * np.outer(sd, sd).max()
+    no_pose_term = sum(float(landmark_update(x_hat[None], z[j], mus[j][None], sigs[j][None], r)[2][0])
+                       for j in range(2))
+    assert abs(no_pose_term - evidence) > 0.3
+
+
 def test_motion_gaussian_is_the_linearised_odometry_model():
     poses = np.array([[0.0, 0.0, 0.0], [1.0, -2.0, 2.5]])
     u = np.array([0.4, 0.05, 0.2])

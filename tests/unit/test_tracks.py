@@ -69,6 +69,42 @@ def test_zero_limits_never_prune_and_detection_probability_scales_the_limits() -
         assert tr.prune_mask()[0, 0] == (t >= 8)
 
 
+@pytest.mark.parametrize("p_d", [1.0, 0.5, 0.25, 0.3])
+def test_evidence_rule_is_the_existence_counter(p_d: float, rng: np.random.Generator) -> None:
+    """miss_rule="evidence" against a scalar reference of the existence counter FastSLAM had before the tracker
+    (start 2g, +g per sighting, -1 per miss, pruned at 0; g = round(1/p_d)), over random sighting/miss sequences.
+    When 1/p_d is not an integer the start is the tracker's limit ceil(2/p_d) (7 for p_d = 0.3, not 2g = 6)."""
+    g = max(1, round(1 / p_d))
+    cfg = TrackConfig(confirm_after=2, tentative_max_misses=2, confirmed_max_misses=2, misses_per_sighting=1 / p_d,
+                      miss_rule="evidence")
+    assert cfg.misses_cancelled_by_sighting == g
+    for _ in range(20):
+        tr = LandmarkTracks(cfg)
+        tr.append(1, step=0)
+        evidence = cfg.tentative_limit
+        assert evidence == 2 * g or p_d == 0.3
+        for t in range(1, 60):
+            if rng.random() < 0.4:
+                tr.sight([0], step=t)
+                evidence += g
+            else:
+                tr.miss(np.ones((1, 1), dtype=bool), step=t)
+                evidence -= 1
+            assert tr.prune_mask()[0, 0] == (evidence <= 0), (t, evidence, tr.misses)
+            if evidence <= 0:
+                break
+    # unlike "consecutive", a long-sighted landmark survives a run of misses longer than the limit
+    tr = LandmarkTracks(cfg)
+    tr.append(1, step=0)
+    for t in range(1, 10):
+        tr.sight([0], step=t)
+    for t in range(10, 10 + cfg.tentative_limit + 9 * g - 1):
+        tr.miss(np.ones((1, 1), dtype=bool), step=t)
+    assert not tr.prune_mask().any()
+    with pytest.raises(ValueError, match="miss_rule"):
+        TrackConfig(miss_rule="sometimes")
+
+
 def test_in_view_rule() -> None:
     z = np.array([[7.4, 0.0], [7.6, 0.0], [5.0, 0.5], [5.0, 0.45], [0.0, 0.0]])
     # range <= 8 - 0.5; |bearing| <= fov/2 - 0.5 / range (fov 1.2 rad: 0.6 - 0.1 = 0.5 at 5 m)

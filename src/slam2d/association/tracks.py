@@ -13,6 +13,12 @@ The rules (:class:`TrackConfig`), all element-wise over (M, K):
   only with probability p_d needs 1/p_d times more misses to say as much, so both limits are multiplied by
   ``misses_per_sighting`` (the sensor's 1/p_d). A tentative landmark is pruned after ``tentative_max_misses`` such
   steps, a confirmed one after ``confirmed_max_misses`` (0: never);
+* ``miss_rule="evidence"`` replaces "consecutive" by an existence counter (the map management of Probabilistic
+  Robotics ch. 13; the rule FastSLAM had before this tracker): a sighting does not reset ``misses`` but cancels
+  ``round(1/p_d)`` of them (at least one), so ``misses`` is the net count
+  ``misses_total - (hits - 1) round(1/p_d)`` and may go negative. A landmark sighted n times then survives about
+  (n - 1)/p_d more misses than a new one: long-lived landmarks are not dropped by a run of misses (a detector that
+  skips a tree for a while), while clutter sighted a few times still goes;
 * persistence (``dynamic_test``, the rule that keeps moving objects out): every sighting also gives a world-frame
   point z_i with covariance R_i (pose taken as exact). The weighted residual sum of squares of a landmark's
   sightings about their weighted mean, ``sum_i (z_i - m)^T R_i^-1 (z_i - m)`` (kept as running sums), must stay
@@ -56,6 +62,9 @@ class TrackConfig:
     margin / range (the angle the margin subtends)."""
     misses_per_sighting: float = 1.0
     """1 / detection probability of the sensor (``SensorConfig.misses_per_sighting``); scales both miss limits."""
+    miss_rule: str = "consecutive"
+    """"consecutive": a sighting resets ``misses``; "evidence": a sighting cancels round(1/p_d) misses (an
+    existence counter, see the module docstring). The limits apply to the (net) ``misses`` either way."""
     dynamic_test: bool = False
     """apply the persistence rule (consistency and constant-velocity tests) to tentative landmarks."""
     consistency_probability: float = 0.99
@@ -72,6 +81,8 @@ class TrackConfig:
             raise ValueError(f"view_margin_m must be finite and >= 0 (got {self.view_margin_m!r})")
         if not (self.misses_per_sighting >= 1 and math.isfinite(self.misses_per_sighting)):
             raise ValueError(f"misses_per_sighting must be finite and >= 1 (got {self.misses_per_sighting!r})")
+        if self.miss_rule not in ("consecutive", "evidence"):
+            raise ValueError(f"miss_rule must be 'consecutive' or 'evidence' (got {self.miss_rule!r})")
         for name in ("consistency_probability", "velocity_probability"):
             if not 0 < getattr(self, name) < 1:
                 raise ValueError(f"{name} must be in (0, 1) (got {getattr(self, name)!r})")
@@ -80,6 +91,11 @@ class TrackConfig:
     def tentative_limit(self) -> int:
         """Consecutive misses that prune a tentative landmark (0: never), detection probability included."""
         return math.ceil(self.tentative_max_misses * self.misses_per_sighting)
+
+    @property
+    def misses_cancelled_by_sighting(self) -> int:
+        """Misses a sighting cancels under ``miss_rule="evidence"``: round(1/p_d), at least one."""
+        return max(1, round(self.misses_per_sighting))
 
     @property
     def confirmed_limit(self) -> int:
@@ -227,19 +243,23 @@ class LandmarkTracks:
     def sight(self, cols: ArrayLike, step: int, points: ArrayLike | None = None, covs: ArrayLike | None = None, *,
               rows: ArrayLike | None = None) -> None:
         """Landmarks (rows, cols) (n,) were sighted at ``step``: one more hit each (a slot listed twice counts
-        twice), misses reset; then the persistence rule for the tentative ones."""
+        twice), misses reset (``miss_rule="evidence"``: reduced by round(1/p_d) per sighting); then the persistence
+        rule for the tentative ones."""
         r, c = self._index(rows, cols)
         was_tentative = self.hits[r, c] < self.config.confirm_after  # a confirmed landmark stays confirmed
         np.add.at(self.hits, (r, c), 1)
-        self.misses[r, c] = 0
+        if self.config.miss_rule == "evidence":
+            np.subtract.at(self.misses, (r, c), self.config.misses_cancelled_by_sighting)
+        else:
+            self.misses[r, c] = 0
         self.last_step[r, c] = step
         if self.config.dynamic_test:
             self._accumulate(r, c, step, points, covs)
             self._apply_persistence(r[was_tentative], c[was_tentative])
 
     def miss(self, in_view_mask: ArrayLike, step: int) -> None:
-        """One more consecutive miss for every occupied slot where ``in_view_mask`` (M,K) holds and that was not
-        sighted (or started) at ``step``."""
+        """One more miss (consecutive, or net with ``miss_rule="evidence"``) for every occupied slot where
+        ``in_view_mask`` (M,K) holds and that was not sighted (or started) at ``step``."""
         v = np.asarray(in_view_mask, dtype=bool) & self.occupied & (self.last_step < step)
         self.misses += v
 
