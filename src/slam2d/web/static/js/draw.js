@@ -9,12 +9,71 @@ export const COLORS = {
   ghost: 'rgba(120,120,120,0.75)', range: 'rgba(240,140,0,0.35)',
 };
 
+// true when two lists of sections hold the same shapes and numbers (a layer drawn from them need not be redrawn)
+function sameSections(a, b) {
+  if (a.length !== b.length) return false;
+  for (let i = 0; i < a.length; i++) {
+    const x = a[i], y = b[i];
+    if (!x || !y) { if (x !== y) return false; continue; }
+    if (x.rows !== y.rows || x.cols !== y.cols) return false;
+    const p = x.data, q = y.data;
+    for (let j = 0; j < p.length; j++) if (p[j] !== q[j]) return false;
+  }
+  return true;
+}
+
 export class WorldView {
   constructor(canvas) {
     this.canvas = canvas;
     this.ctx = canvas.getContext('2d');
     this.bounds = [0, 0, 10, 10];
+    this.layers = {}; // cached layers (cached())
     this.fit();
+  }
+
+  // A layer drawn from sections that often stay the same for many frames (the background; a graph back end's
+  // landmarks between two optimisations): once the sections and the view have been the same for `settle` frames in a
+  // row, the layer is drawn into an offscreen canvas and copied from there (one drawImage) until they change.
+  // Sections that change every frame (an EKF's landmarks) are drawn directly, at no extra cost but a comparison.
+  cached(name, secs, settle, drawFn) {
+    const view = [this.scale, this.ox, this.oy, this.canvas.width, this.canvas.height];
+    const L = this.layers[name] || (this.layers[name] = { secs: null, view: null, same: 0, ready: false, off: null });
+    if (L.secs && L.view.every((v, i) => v === view[i]) && sameSections(L.secs, secs)) {
+      L.same += 1;
+    } else {
+      // keep copies: the sections' arrays are views into a frame buffer that the next frame replaces
+      L.secs = secs.map((x) => (x ? { rows: x.rows, cols: x.cols, data: x.data.slice() } : x));
+      L.view = view; L.same = 0; L.ready = false;
+    }
+    const c = this.ctx;
+    if (L.same < settle) { L.result = drawFn(); return L.result; }
+    if (!L.ready) {
+      if (!L.off || L.off.width !== this.canvas.width || L.off.height !== this.canvas.height) {
+        L.off = new OffscreenCanvas(this.canvas.width, this.canvas.height);
+      }
+      this.ctx = L.off.getContext('2d');
+      try {
+        this.ctx.setTransform(1, 0, 0, 1, 0, 0);
+        this.ctx.clearRect(0, 0, L.off.width, L.off.height);
+        L.result = drawFn();
+      } finally {
+        this.ctx = c;
+      }
+      L.ready = true;
+    }
+    c.setTransform(1, 0, 0, 1, 0, 0);
+    c.drawImage(L.off, 0, 0);
+    return L.result;
+  }
+
+  // the background: white, the grid image, the walls (when there is no grid) and the true landmarks
+  base(s) {
+    this.cached('base', [s.GRID, s.GRDM, s.WALL, s.TLMK], 0, () => {
+      this.clear();
+      this.grid(s.GRID, s.GRDM);
+      if (!s.GRID) this.segments(s.WALL, COLORS.wall, 2);
+      this.crosses(s.TLMK, COLORS.trueLm, 4);
+    });
   }
 
   setBounds(b) {
@@ -114,25 +173,35 @@ export class WorldView {
   }
 
   // 95% ellipses of 2x2 covariances (row-major, 4 per row) centred on means (2 per row); all in one path.
-  // The 2x2 eigen-decomposition is closed form; k = sqrt(chi2_2(0.95)) = sqrt(5.991).
-  ellipses(means, covs, color, meanStride = 2) {
-    if (!means || !covs || covs.rows === 0) return;
+  // The 2x2 eigen-decomposition is closed form; k = sqrt(chi2_2(0.95)) = sqrt(5.991). Each ellipse gets as many
+  // segments as its size in pixels needs (chord error about 1/4 px: n = pi sqrt(2 r), 8..24), and one whose
+  // major semi-axis is under minPx pixels is not stroked: it would lie inside the landmark's 5-pixel dot.
+  ellipses(means, covs, color, meanStride = 2, minPx = 2) {
+    if (!means || !covs || covs.rows === 0) return 0;
     const c = this.ctx, m = means.data, v = covs.data, n = Math.min(means.rows, covs.rows);
-    const k = Math.sqrt(5.991), seg = 24;
+    const k = Math.sqrt(5.991), sc = this.scale;
+    let drawn = 0;
     c.beginPath();
     for (let i = 0; i < n; i++) {
       const a = v[4 * i], b = 0.5 * (v[4 * i + 1] + v[4 * i + 2]), d = v[4 * i + 3];
       const mean = 0.5 * (a + d), rad = Math.sqrt(Math.max(0.25 * (a - d) * (a - d) + b * b, 0));
       const l1 = Math.sqrt(Math.max(mean + rad, 0)) * k, l2 = Math.sqrt(Math.max(mean - rad, 0)) * k;
+      const r = l1 * sc;
+      if (!(r >= minPx)) continue; // tiny (or NaN)
+      const seg = Math.min(24, Math.max(8, Math.ceil(Math.PI * Math.sqrt(2 * r))));
       const ang = 0.5 * Math.atan2(2 * b, a - d), ca = Math.cos(ang), sa = Math.sin(ang);
-      const mx = m[meanStride * i], my = m[meanStride * i + 1];
-      for (let j = 0; j <= seg; j++) {
-        const t = (2 * Math.PI * j) / seg, ex = l1 * Math.cos(t), ey = l2 * Math.sin(t);
-        const X = this.px(mx + ca * ex - sa * ey), Y = this.py(my + sa * ex + ca * ey);
-        if (j === 0) c.moveTo(X, Y); else c.lineTo(X, Y);
+      const X0 = this.px(m[meanStride * i]), Y0 = this.py(m[meanStride * i + 1]);
+      // in pixels: x right, y down (the world's y axis flipped)
+      const ux = sc * l1 * ca, uy = -sc * l1 * sa, vx = -sc * l2 * sa, vy = -sc * l2 * ca;
+      c.moveTo(X0 + ux, Y0 + uy);
+      for (let j = 1; j <= seg; j++) {
+        const t = (2 * Math.PI * j) / seg, ct = Math.cos(t), st = Math.sin(t);
+        c.lineTo(X0 + ct * ux + st * vx, Y0 + ct * uy + st * vy);
       }
+      drawn += 1;
     }
     c.strokeStyle = color; c.lineWidth = 1; c.stroke();
+    return drawn;
   }
 
   // association lines: x,y (observation), x,y (landmark), flag (1 correct, 0 wrong)

@@ -276,25 +276,44 @@ function connect() {
   ws.onmessage = (ev) => { if (typeof ev.data === 'string') onText(ev.data); else onFrame(ev.data); };
 }
 
+// the numbers panel, at most 10 times a second (text that changes 60 times a second cannot be read, and every
+// change re-lays out the page); only the values whose text changed are written
+let numbersAt = -Infinity;
+const numberEls = new Map();
+function showNumbers(now) {
+  if (now - numbersAt < 100) return;
+  numbersAt = now;
+  for (const [n, v] of Object.entries(lab.counters)) {
+    let el = numberEls.get(n);
+    if (!el || !el.isConnected) {
+      el = numbersEl.querySelector(`[data-num="${n}"]`);
+      numberEls.set(n, el);
+    }
+    const text = fmt(v);
+    if (el && el.textContent !== text) el.textContent = text;
+  }
+}
+
 function draw() {
   if (!latest || latest.seq === drawnSeq) return;
   const t0 = performance.now();
   const s = latest.sections;
   fitEstimate(s);
-  view.clear();
-  view.grid(s.GRID, s.GRDM);
-  if (!s.GRID) view.segments(s.WALL, COLORS.wall, 2);
+  view.base(s); // white, grid image, walls, true landmarks: redrawn only when they or the view change
   view.dots(s.SCAN, COLORS.scan, 2);
   view.segments(s.GEDG, COLORS.graphEdge, 1);
   view.path(s.TPTH, COLORS.truePath, 2);
   view.circle(s.RNGE, COLORS.range);
   view.path(s.GHST, COLORS.ghost, 1.5, [2, 3]);
   view.path(s.EPTH, COLORS.estPath, 2, [6, 4]);
-  view.crosses(s.TLMK, COLORS.trueLm, 4);
   if (s.OCOV) view.ellipses(s.OBSV, s.OCOV, COLORS.obsEllipse);
   view.rays(s.EPOS, s.OBSV, COLORS.obs);
-  view.ellipses(s.ELMK, s.ECOV, COLORS.ellipse);
-  view.dots(s.ELMK, COLORS.estLm, 5);
+  // the estimated landmarks and their ellipses: a graph back end moves them only when it optimises
+  lab.ellipsesDrawn = view.cached('landmarks', [s.ELMK, s.ECOV], 1, () => {
+    const n = view.ellipses(s.ELMK, s.ECOV, COLORS.ellipse);
+    view.dots(s.ELMK, COLORS.estLm, 5);
+    return n;
+  });
   view.dots(s.GNOD, COLORS.graphNode, 3);
   view.dots(s.PART, COLORS.particle, 3, 3);
   view.matches(s.MTCH);
@@ -307,10 +326,7 @@ function draw() {
   view.robot(s.EPOS, COLORS.estRobot, 0.35);
   if (heatCanvas) drawHeat(heatCanvas, s.HEAT);
   if (zoomCanvas) lab.zoom = drawParticleZoom(zoomCanvas, s.PART, s.TPOS);
-  for (const [n, v] of Object.entries(lab.counters)) {
-    const el = numbersEl.querySelector(`[data-num="${n}"]`);
-    if (el) el.textContent = fmt(v);
-  }
+  showNumbers(t0);
   drawnSeq = latest.seq;
   lab.drawn += 1;
   lab.drawMs = performance.now() - t0;
