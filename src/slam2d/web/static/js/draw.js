@@ -9,18 +9,24 @@ export const COLORS = {
   ghost: 'rgba(120,120,120,0.75)', range: 'rgba(240,140,0,0.35)',
 };
 
-// true when two lists of sections hold the same shapes and numbers (a layer drawn from them need not be redrawn)
-function sameSections(a, b) {
-  if (a.length !== b.length) return false;
-  for (let i = 0; i < a.length; i++) {
-    const x = a[i], y = b[i];
-    if (!x || !y) { if (x !== y) return false; continue; }
-    if (x.rows !== y.rows || x.cols !== y.cols) return false;
+// How the sections `cur` relate to `old` (the copies a cached layer was drawn from): 'same', 'grown' (every section
+// keeps its old rows unchanged, and some have rows appended) or 'changed'.
+function compareSections(old, cur) {
+  if (old.length !== cur.length) return 'changed';
+  let grown = false;
+  for (let i = 0; i < old.length; i++) {
+    const x = old[i], y = cur[i];
+    if (!x || !y) { if (x !== y) return 'changed'; continue; }
+    if (x.cols !== y.cols || y.rows < x.rows) return 'changed';
+    if (y.rows > x.rows) grown = true;
     const p = x.data, q = y.data;
-    for (let j = 0; j < p.length; j++) if (p[j] !== q[j]) return false;
+    for (let j = 0; j < p.length; j++) if (p[j] !== q[j]) return 'changed';
   }
-  return true;
+  return grown ? 'grown' : 'same';
 }
+
+// rows appended to a cached layer's sections that are drawn directly, at most (beyond: the layer is redrawn)
+const MAX_APPENDED = 64;
 
 export class WorldView {
   constructor(canvas) {
@@ -33,20 +39,25 @@ export class WorldView {
 
   // A layer drawn from sections that often stay the same for many frames (the background; a graph back end's
   // landmarks between two optimisations): once the sections and the view have been the same for `settle` frames in a
-  // row, the layer is drawn into an offscreen canvas and copied from there (one drawImage) until they change.
-  // Sections that change every frame (an EKF's landmarks) are drawn directly, at no extra cost but a comparison.
-  cached(name, secs, settle, drawFn) {
+  // row, the layer is drawn into an offscreen canvas and copied from there (one drawImage) until they change. With
+  // `appendable`, rows appended to the sections (new landmarks) are drawn directly over the copy. Sections that
+  // change every frame (an EKF's landmarks) are drawn directly, at no extra cost but a comparison.
+  // drawFn(from, to) draws rows from..to-1 of the sections and returns a count (summed over the two parts).
+  cached(name, secs, settle, drawFn, appendable = false) {
     const view = [this.scale, this.ox, this.oy, this.canvas.width, this.canvas.height];
     const L = this.layers[name] || (this.layers[name] = { secs: null, view: null, same: 0, ready: false, off: null });
-    if (L.secs && L.view.every((v, i) => v === view[i]) && sameSections(L.secs, secs)) {
-      L.same += 1;
-    } else {
+    const rows = secs[0] ? secs[0].rows : 0;
+    let rel = L.secs && L.view.every((v, i) => v === view[i]) ? compareSections(L.secs, secs) : 'changed';
+    if (rel === 'grown' && (!appendable || rows - L.rows > MAX_APPENDED)) rel = 'changed';
+    if (rel === 'changed') {
       // keep copies: the sections' arrays are views into a frame buffer that the next frame replaces
       L.secs = secs.map((x) => (x ? { rows: x.rows, cols: x.cols, data: x.data.slice() } : x));
-      L.view = view; L.same = 0; L.ready = false;
+      L.view = view; L.rows = rows; L.same = 0; L.ready = false;
+    } else {
+      L.same += 1;
     }
     const c = this.ctx;
-    if (L.same < settle) { L.result = drawFn(); return L.result; }
+    if (L.same < settle) return drawFn(0, rows);
     if (!L.ready) {
       if (!L.off || L.off.width !== this.canvas.width || L.off.height !== this.canvas.height) {
         L.off = new OffscreenCanvas(this.canvas.width, this.canvas.height);
@@ -55,7 +66,7 @@ export class WorldView {
       try {
         this.ctx.setTransform(1, 0, 0, 1, 0, 0);
         this.ctx.clearRect(0, 0, L.off.width, L.off.height);
-        L.result = drawFn();
+        L.result = drawFn(0, L.rows);
       } finally {
         this.ctx = c;
       }
@@ -63,7 +74,7 @@ export class WorldView {
     }
     c.setTransform(1, 0, 0, 1, 0, 0);
     c.drawImage(L.off, 0, 0);
-    return L.result;
+    return rows > L.rows ? L.result + drawFn(L.rows, rows) : L.result;
   }
 
   // the background: white, the grid image, the walls (when there is no grid) and the true landmarks
@@ -121,11 +132,11 @@ export class WorldView {
   }
 
   // points as small squares (fast: one path, one fill)
-  dots(s, color, size = 4, stride = null) {
+  dots(s, color, size = 4, stride = null, from = 0, to = Infinity) {
     if (!s || s.rows === 0) return;
-    const c = this.ctx, d = s.data, k = stride || s.cols, h = size / 2;
+    const c = this.ctx, d = s.data, k = stride || s.cols, h = size / 2, end = Math.min(s.rows, to);
     c.beginPath();
-    for (let i = 0; i < s.rows; i++) c.rect(this.px(d[k * i]) - h, this.py(d[k * i + 1]) - h, size, size);
+    for (let i = from; i < end; i++) c.rect(this.px(d[k * i]) - h, this.py(d[k * i + 1]) - h, size, size);
     c.fillStyle = color; c.fill();
   }
 
@@ -176,13 +187,13 @@ export class WorldView {
   // The 2x2 eigen-decomposition is closed form; k = sqrt(chi2_2(0.95)) = sqrt(5.991). Each ellipse gets as many
   // segments as its size in pixels needs (chord error about 1/4 px: n = pi sqrt(2 r), 8..24), and one whose
   // major semi-axis is under minPx pixels is not stroked: it would lie inside the landmark's 5-pixel dot.
-  ellipses(means, covs, color, meanStride = 2, minPx = 2) {
+  ellipses(means, covs, color, meanStride = 2, minPx = 2, from = 0, to = Infinity) {
     if (!means || !covs || covs.rows === 0) return 0;
-    const c = this.ctx, m = means.data, v = covs.data, n = Math.min(means.rows, covs.rows);
+    const c = this.ctx, m = means.data, v = covs.data, n = Math.min(means.rows, covs.rows, to);
     const k = Math.sqrt(5.991), sc = this.scale;
     let drawn = 0;
     c.beginPath();
-    for (let i = 0; i < n; i++) {
+    for (let i = from; i < n; i++) {
       const a = v[4 * i], b = 0.5 * (v[4 * i + 1] + v[4 * i + 2]), d = v[4 * i + 3];
       const mean = 0.5 * (a + d), rad = Math.sqrt(Math.max(0.25 * (a - d) * (a - d) + b * b, 0));
       const l1 = Math.sqrt(Math.max(mean + rad, 0)) * k, l2 = Math.sqrt(Math.max(mean - rad, 0)) * k;
