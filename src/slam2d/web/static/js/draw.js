@@ -9,24 +9,19 @@ export const COLORS = {
   ghost: 'rgba(120,120,120,0.75)', range: 'rgba(240,140,0,0.35)',
 };
 
-// How the sections `cur` relate to `old` (the copies a cached layer was drawn from): 'same', 'grown' (every section
-// keeps its old rows unchanged, and some have rows appended) or 'changed'.
-function compareSections(old, cur) {
-  if (old.length !== cur.length) return 'changed';
-  let grown = false;
+// Does each section of `cur` start with the rows of its copy in `old` (same numbers), with at most `extra` more
+// rows? (A cached layer drawn from `old` is then still right; the extra rows are drawn over it.)
+function extendsSections(old, cur, extra) {
+  if (old.length !== cur.length) return false;
   for (let i = 0; i < old.length; i++) {
     const x = old[i], y = cur[i];
-    if (!x || !y) { if (x !== y) return 'changed'; continue; }
-    if (x.cols !== y.cols || y.rows < x.rows) return 'changed';
-    if (y.rows > x.rows) grown = true;
+    if (!x || !y) { if (Boolean(x) !== Boolean(y) || (x && x.rows)) return false; continue; }
+    if (x.cols !== y.cols || y.rows < x.rows || y.rows - x.rows > extra) return false;
     const p = x.data, q = y.data;
-    for (let j = 0; j < p.length; j++) if (p[j] !== q[j]) return 'changed';
+    for (let j = 0; j < p.length; j++) if (p[j] !== q[j]) return false;
   }
-  return grown ? 'grown' : 'same';
+  return true;
 }
-
-// rows appended to a cached layer's sections that are drawn directly, at most (beyond: the layer is redrawn)
-const MAX_APPENDED = 64;
 
 export class WorldView {
   constructor(canvas) {
@@ -37,27 +32,32 @@ export class WorldView {
     this.fit();
   }
 
-  // A layer drawn from sections that often stay the same for many frames (the background; a graph back end's
-  // landmarks between two optimisations): once the sections and the view have been the same for `settle` frames in a
-  // row, the layer is drawn into an offscreen canvas and copied from there (one drawImage) until they change. With
-  // `appendable`, rows appended to the sections (new landmarks) are drawn directly over the copy. Sections that
-  // change every frame (an EKF's landmarks) are drawn directly, at no extra cost but a comparison.
-  // drawFn(from, to) draws rows from..to-1 of the sections and returns a count (summed over the two parts).
-  cached(name, secs, settle, drawFn, appendable = false) {
+  // A layer drawn from sections that often stay the same for many frames (the background; the paths; a graph back
+  // end's landmarks between two optimisations): once they have stayed the same (with the view) for `settle` frames
+  // in a row, the layer is drawn into an offscreen canvas and copied from there (one drawImage) until they change.
+  // Options: `append` rows may be added to the sections and are drawn directly over the copy (at most 64, then the
+  // layer is redrawn); the last `live` rows of each section are never cached (a path's newest point moves every
+  // frame). Sections that change every frame (an EKF's landmarks) are drawn directly, at the cost of a comparison.
+  // drawFn(from, to) draws rows from[i]..to[i]-1 of section i and returns a count (summed over the two parts).
+  cached(name, secs, settle, drawFn, { append = false, live = 0 } = {}) {
     const view = [this.scale, this.ox, this.oy, this.canvas.width, this.canvas.height];
     const L = this.layers[name] || (this.layers[name] = { secs: null, view: null, same: 0, ready: false, off: null });
-    const rows = secs[0] ? secs[0].rows : 0;
-    let rel = L.secs && L.view.every((v, i) => v === view[i]) ? compareSections(L.secs, secs) : 'changed';
-    if (rel === 'grown' && (!appendable || rows - L.rows > MAX_APPENDED)) rel = 'changed';
-    if (rel === 'changed') {
-      // keep copies: the sections' arrays are views into a frame buffer that the next frame replaces
-      L.secs = secs.map((x) => (x ? { rows: x.rows, cols: x.cols, data: x.data.slice() } : x));
-      L.view = view; L.rows = rows; L.same = 0; L.ready = false;
-    } else {
+    const rows = secs.map((x) => (x ? x.rows : 0));
+    const extra = append ? 64 + live : live;
+    if (L.secs && L.view.every((v, i) => v === view[i]) && extendsSections(L.secs, secs, extra)) {
       L.same += 1;
+    } else {
+      // copies of the rows to cache: the sections' arrays are views into a frame buffer the next frame replaces
+      L.secs = secs.map((x) => {
+        if (!x) return x;
+        const r = Math.max(x.rows - live, 0);
+        return { rows: r, cols: x.cols, data: x.data.slice(0, r * x.cols) };
+      });
+      L.view = view; L.same = 0; L.ready = false;
     }
-    const c = this.ctx;
-    if (L.same < settle) return drawFn(0, rows);
+    const c = this.ctx, zero = rows.map(() => 0);
+    if (L.same < settle) return drawFn(zero, rows);
+    const kept = L.secs.map((x) => (x ? x.rows : 0));
     if (!L.ready) {
       if (!L.off || L.off.width !== this.canvas.width || L.off.height !== this.canvas.height) {
         L.off = new OffscreenCanvas(this.canvas.width, this.canvas.height);
@@ -66,7 +66,7 @@ export class WorldView {
       try {
         this.ctx.setTransform(1, 0, 0, 1, 0, 0);
         this.ctx.clearRect(0, 0, L.off.width, L.off.height);
-        L.result = drawFn(0, L.rows);
+        L.result = drawFn(zero, kept);
       } finally {
         this.ctx = c;
       }
@@ -74,7 +74,7 @@ export class WorldView {
     }
     c.setTransform(1, 0, 0, 1, 0, 0);
     c.drawImage(L.off, 0, 0);
-    return rows > L.rows ? L.result + drawFn(L.rows, rows) : L.result;
+    return rows.some((r, i) => r > kept[i]) ? (L.result || 0) + drawFn(kept, rows) : L.result;
   }
 
   // the background: white, the grid image, the walls (when there is no grid) and the true landmarks
@@ -122,12 +122,14 @@ export class WorldView {
     c.strokeStyle = color; c.lineWidth = width; c.stroke();
   }
 
-  path(s, color, width = 2, dash = []) {
-    if (!s || s.rows < 2) return;
+  // a polyline through rows from..to-1 (one path, one stroke)
+  path(s, color, width = 2, dash = [], from = 0, to = Infinity) {
+    const end = s ? Math.min(s.rows, to) : 0;
+    if (end - from < 2) return;
     const c = this.ctx, d = s.data;
     c.beginPath();
-    c.moveTo(this.px(d[0]), this.py(d[1]));
-    for (let i = 1; i < s.rows; i++) c.lineTo(this.px(d[2 * i]), this.py(d[2 * i + 1]));
+    c.moveTo(this.px(d[2 * from]), this.py(d[2 * from + 1]));
+    for (let i = from + 1; i < end; i++) c.lineTo(this.px(d[2 * i]), this.py(d[2 * i + 1]));
     c.setLineDash(dash); c.strokeStyle = color; c.lineWidth = width; c.stroke(); c.setLineDash([]);
   }
 

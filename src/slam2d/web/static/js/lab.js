@@ -306,18 +306,23 @@ function draw() {
   view.base(s); // white, grid image, walls, true landmarks: redrawn only when they or the view change
   view.dots(s.SCAN, COLORS.scan, 2);
   view.segments(s.GEDG, COLORS.graphEdge, 1);
-  view.path(s.TPTH, COLORS.truePath, 2);
   view.circle(s.RNGE, COLORS.range);
-  view.path(s.GHST, COLORS.ghost, 1.5, [2, 3]);
-  view.path(s.EPTH, COLORS.estPath, 2, [6, 4]);
+  // the paths: a path's rows stay put while it grows (the server's power-of-two stride), its newest row moves; the
+  // part drawn directly starts at the last cached row, so the two parts join
+  view.cached('paths', [s.TPTH, s.GHST, s.EPTH], 1, (from, to) => {
+    const f = from.map((v) => Math.max(v - 1, 0));
+    view.path(s.TPTH, COLORS.truePath, 2, [], f[0], to[0]);
+    view.path(s.GHST, COLORS.ghost, 1.5, [2, 3], f[1], to[1]);
+    view.path(s.EPTH, COLORS.estPath, 2, [6, 4], f[2], to[2]);
+  }, { append: true, live: 1 });
   if (s.OCOV) view.ellipses(s.OBSV, s.OCOV, COLORS.obsEllipse);
   view.rays(s.EPOS, s.OBSV, COLORS.obs);
   // the estimated landmarks and their ellipses: a graph back end moves them only when it optimises
   lab.ellipsesDrawn = view.cached('landmarks', [s.ELMK, s.ECOV], 1, (from, to) => {
-    const n = view.ellipses(s.ELMK, s.ECOV, COLORS.ellipse, 2, 2, from, to);
-    view.dots(s.ELMK, COLORS.estLm, 5, null, from, to);
+    const n = view.ellipses(s.ELMK, s.ECOV, COLORS.ellipse, 2, 2, from[0], to[0]);
+    view.dots(s.ELMK, COLORS.estLm, 5, null, from[0], to[0]);
     return n;
-  }, true);
+  }, { append: true });
   view.dots(s.GNOD, COLORS.graphNode, 3);
   view.dots(s.PART, COLORS.particle, 3, 3);
   view.matches(s.MTCH);
