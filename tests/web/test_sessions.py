@@ -466,3 +466,20 @@ def test_simulator_runs_the_lidar_back_end_and_draws_its_occupancy_grid() -> Non
     assert s.values["estimator"] == "dead-reckoning" and any("room or warehouse" in n for n in s.notices)
     s.apply({"type": "action", "name": "step"})
     assert "GRID" not in dict(s.sections())
+
+
+def test_downsample_keeps_the_rows_already_sent_while_a_path_grows() -> None:
+    from slam2d.web.sessions.base import downsample
+
+    pts = np.arange(10_000, dtype=np.float64)[:, None] * [1.0, 2.0]
+    assert len(downsample(pts[:40], 50)) == 40  # short paths go as they are
+    prev = None
+    for n in range(45, 3000, 7):
+        d = downsample(pts[:n], 50)
+        assert 2 <= len(d) <= 50 and np.array_equal(d[0], pts[0]) and np.array_equal(d[-1], pts[n - 1])
+        stride = d[1, 0] - d[0, 0]
+        assert stride > 0 and int(stride) & (int(stride) - 1) == 0  # a power of two
+        assert np.all(np.diff(d[:-1, 0]) == stride)
+        if prev is not None and prev[1] == stride:  # same stride: what was sent (but the newest row) is still there
+            assert np.array_equal(d[: len(prev[0]) - 1], prev[0][:-1])
+        prev = (d, stride)

@@ -16,12 +16,18 @@ tried). The back end supplies its estimate through two callables, so nothing her
 ``pose_of(key) -> (3,)`` and ``joint_cov(a, b) -> (6, 6)`` (called only for a verified candidate: a marginal can be
 expensive).
 
+Bounded work per step (``queue`` + ``verify_queued``): instead of verifying every candidate of a keyframe at once
+(each verification costs a few milliseconds), a back end may queue them and verify a fixed number per step; the
+candidates of one keyframe keep their order and the first accepted one still ends them. At most ``MAX_QUEUED``
+candidates wait (the oldest are dropped: a stale candidate's keyframe has left the back end's local window).
+
 State: the keyframes are map state (one entry per keyframe with enough points, kept for the whole run, as the
-landmarks are); nothing else accumulates.
+landmarks are); the queue holds at most ``MAX_QUEUED`` key pairs.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -39,6 +45,9 @@ from slam2d.frontend.place_recognition import (
 from slam2d.geometry import se2
 
 Array = NDArray[np.float64]
+
+#: candidates waiting for verification at most (``LoopCloser.queue``)
+MAX_QUEUED = 6
 
 
 @dataclass(frozen=True)
@@ -69,6 +78,7 @@ class LoopCloser:
         self.rng = rng
         self.db = KeyframeDatabase(place)
         self.keyframes: dict[int, tuple[Array, Array]] = {}  # key -> points (K,2), covariances (K,2,2)
+        self.queued: deque[tuple[int, int]] = deque(maxlen=MAX_QUEUED)  # (a, b) pairs, oldest first
 
     def add_keyframe(self, key: int, points: Array, covs: Array) -> bool:
         """Store a keyframe (points in its own frame with their covariances); False when too few points."""
@@ -109,4 +119,30 @@ class LoopCloser:
                 break
         if add_keyframe:
             self.add_keyframe(key, points, covs)
+        return out
+
+    def queue(self, key: int, points: Array, covs: Array) -> int:
+        """Store the observations at pose ``key`` as a keyframe and queue its candidates (best first) for
+        :meth:`verify_queued`; returns how many were queued."""
+        cands = self.propose(key, points)
+        if not self.add_keyframe(key, points, covs):
+            return 0
+        self.queued.extend((a, int(key)) for a in cands)
+        return len(cands)
+
+    def verify_queued(self, pose_of: Callable[[int], Array], joint_cov: Callable[[int, int], Array],
+                      budget: int = 1) -> list[LoopCandidate]:
+        """Verify and gate at most ``budget`` queued candidates, oldest first: the same decisions as
+        :meth:`try_close` for the keyframe, spread over calls. An accepted one drops the rest of its keyframe's."""
+        out: list[LoopCandidate] = []
+        for _ in range(min(budget, len(self.queued))):
+            a, b = self.queued.popleft()
+            points, covs = self.keyframes[b]
+            hyp = self.verify(a, points, covs)
+            if hyp is None:
+                continue
+            cand = self.gate(a, b, hyp, pose_of(a), pose_of(b), joint_cov(a, b))
+            out.append(cand)
+            if cand.accepted:
+                self.queued = deque((p for p in self.queued if p[1] != b), maxlen=MAX_QUEUED)
         return out

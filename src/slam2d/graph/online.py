@@ -34,7 +34,7 @@ import slam2d.association as association
 from slam2d.association import CLUTTER, NEW, Candidates, candidates_from_belief, resolve_method
 from slam2d.association.tracks import LandmarkTracks, in_view
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, GraphView, LoopEvent
-from slam2d.frontend.loop_closure import LoopCloser
+from slam2d.frontend.loop_closure import LoopCandidate, LoopCloser
 from slam2d.frontend.place_recognition import observation_points
 from slam2d.geometry import se2
 from slam2d.geometry.angles import angle_diff
@@ -148,21 +148,26 @@ class GraphSLAM(EstimatorLifecycle):
             else:
                 self._observe_unknown(t, obs)
             if t % cfg.keyframe_every == 0:
-                if cfg.loop_closure:
-                    loop_added = self._detect_loop(t, obs.z)
-                else:
+                if not cfg.loop_closure:
                     self._remember_keyframe(t, obs.z)
+                elif self._windowed:  # bounded work: its candidates are verified one per step (below)
+                    self.loops.queue(t, *observation_points(obs.z, cfg.sensor.covariance))
+                else:
+                    loop_added = self._detect_loop(t, obs.z)
         else:
             self.last_assignment = np.zeros(0, dtype=np.int64)
             if self._assoc.method != "known" and self.tent_keys.size:
                 drop = self._count_tentative_misses()
                 self._retire_tentatives(np.zeros_like(drop), drop)
         if self._windowed:
-            # window mode: a loop waits for the next window solve (which folds it in) unless a whole-graph solve is
-            # due; window solves fall between keyframes, so loop detection and a solve rarely share a step
+            # window mode: one queued loop candidate verified per step, never on a window solve's step; a loop waits
+            # for the next window solve (which folds it in) unless a whole-graph solve is due
+            window_due = (t + cfg.optimize_every // 2) % cfg.optimize_every == 0
+            if cfg.loop_closure and not window_due:
+                loop_added = self._add_loops(self.loops.verify_queued(self._pose_of, self._loop_joint_cov))
             if loop_added and t - self._last_full >= cfg.full_every:
                 self._optimize(cfg.iterations * 4)
-            elif (t + cfg.optimize_every // 2) % cfg.optimize_every == 0:
+            elif window_due:
                 self._optimize(cfg.window_iterations, local=True)
         elif loop_added or t % cfg.optimize_every == 0:
             self._optimize(cfg.iterations * (4 if loop_added else 1))
@@ -548,7 +553,12 @@ class GraphSLAM(EstimatorLifecycle):
         """Try to close a loop at pose ``t``; an accepted one enters the graph as a robust between factor."""
         cfg = self.config
         pts, covs = observation_points(z, cfg.sensor.covariance)
-        found = self.loops.try_close(t, pts, covs, self._pose_of, self._loop_joint_cov, add_keyframe=add_keyframe)
+        return self._add_loops(
+            self.loops.try_close(t, pts, covs, self._pose_of, self._loop_joint_cov, add_keyframe=add_keyframe))
+
+    def _add_loops(self, found: list[LoopCandidate]) -> bool:
+        """Record the gate's decisions; an accepted loop enters the graph as a robust between factor a -> b."""
+        cfg = self.config
         for c in found:
             self.new_loops.append(c.event)
             self.loops_accepted += c.accepted
@@ -556,7 +566,7 @@ class GraphSLAM(EstimatorLifecycle):
             if c.accepted:
                 info = np.linalg.inv(c.cov) * cfg.loop_info_scale
                 kernel = None if cfg.loop_robust_kernel == "none" else cfg.loop_robust_kernel
-                self.graph.add_between([c.a], [t], c.T_a_b[None], info[None], robust=kernel)
+                self.graph.add_between([c.a], [c.b], c.T_a_b[None], info[None], robust=kernel)
         return any(c.accepted for c in found)
 
     def _loop_joint_cov(self, a: int, b: int) -> Array:

@@ -20,12 +20,13 @@ from pathlib import Path
 from typing import Any
 
 from fastapi import FastAPI, WebSocket
-from fastapi.responses import FileResponse, JSONResponse, Response
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from slam2d.association import METHODS
 from slam2d.lab.registry import estimator_names
+from slam2d.web.chapters import render_chapter
 from slam2d.web.fleet import register_fleet
 from slam2d.web.frames import TAGS, encode_frame
 from slam2d.web.pages import PAGE_BY_SLUG, PAGES
@@ -246,6 +247,8 @@ def create_app(*, allow_origins: frozenset[str] = frozenset(), hosts: frozenset[
     """The lab application (run with uvicorn, ``ws_per_message_deflate=False``); every request passes
     :class:`OriginHostGuard` first."""
     app = FastAPI(title="slam2d lab", docs_url=None, redoc_url=None, openapi_url=None)
+    for p in PAGES:  # a broken page template fails here, at start, not when someone opens the page
+        render_chapter(p.slug)
     app.add_middleware(OriginHostGuard, allow_origins=allow_origins, hosts=hosts)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     register_fleet(app)
@@ -268,7 +271,7 @@ def create_app(*, allow_origins: frozenset[str] = frozenset(), hosts: frozenset[
     async def page(slug: str) -> Response:
         if slug not in PAGE_BY_SLUG:
             return JSONResponse({"error": f"unknown page {slug!r}; pages: {sorted(PAGE_BY_SLUG)}"}, status_code=404)
-        return FileResponse(STATIC / f"{slug}.html")
+        return HTMLResponse(render_chapter(slug))
 
     @app.websocket("/ws/{slug}")
     async def socket(ws: WebSocket, slug: str) -> None:

@@ -53,12 +53,17 @@ class PathBuffer:
 
 
 def downsample(points: Array, limit: int = MAX_PATH_POINTS) -> Array:
-    """At most ``limit`` rows, evenly spaced, always keeping the last one (the current pose)."""
+    """At most ``limit`` rows (limit >= 2): every s-th row, s the smallest power of two that fits, and always the
+    last one (the current pose). With a power-of-two stride the rows already sent stay the same rows while the path
+    grows (until the stride doubles), so the page can keep what it drew of them."""
     n = len(points)
     if n <= limit:
         return points
-    idx = np.unique(np.concatenate([np.linspace(0, n - 1, limit - 1).astype(np.int64), [n - 1]]))
-    return points[idx]
+    s = 1
+    while (n - 1) // s + 2 > limit:
+        s *= 2
+    idx = np.arange(0, n, s)
+    return points[idx] if idx[-1] == n - 1 else points[np.append(idx, n - 1)]
 
 
 def block_average(mat: Array, limit: int = HEAT_MAX) -> Array:

@@ -43,8 +43,9 @@ LIDAR_WORLDS = ("room", "warehouse")
 LIDAR_EVERY, LIDAR_GRID_EVERY, LIDAR_GRID_CELLS = 2, 20, 40_000
 #: poses re-optimised per step by the graph back end on these pages (``GraphSLAMConfig.window``)
 GRAPH_WINDOW = 20
-#: graph edges drawn at most (about): a long drive's thousands of factors would bury the map
-MAX_EDGES = 1500
+#: graph edges drawn at most (about): a long drive's thousands of factors would bury the map; graph nodes drawn at
+#: most (evenly spaced; the estimated path runs through all of them)
+MAX_EDGES, MAX_NODES = 1500, 500
 #: the loop page's "you are back" prompt: after driving farther than AWAY from the start, coming within NEAR of it
 RETURN_AWAY_M, RETURN_NEAR_M = 20.0, 6.0
 
@@ -574,4 +575,4 @@ def graph_view_sections(view: GraphView) -> Sections:
         else:
             segs.append(np.hstack([_lookup(pk, poses, k[:, 0]), _lookup(view.point_keys, view.points, k[:, 1])]))
     edges = np.vstack(segs) if segs else np.zeros((0, 4))
-    return [("GNOD", downsample(poses)), ("GEDG", edges)]
+    return [("GNOD", downsample(poses, MAX_NODES)), ("GEDG", edges)]

@@ -9,12 +9,82 @@ export const COLORS = {
   ghost: 'rgba(120,120,120,0.75)', range: 'rgba(240,140,0,0.35)',
 };
 
+// Does each section of `cur` start with the rows of its copy in `old` (same numbers), with at most `extra` more
+// rows? (A cached layer drawn from `old` is then still right; the extra rows are drawn over it.)
+function extendsSections(old, cur, extra) {
+  if (old.length !== cur.length) return false;
+  for (let i = 0; i < old.length; i++) {
+    const x = old[i], y = cur[i];
+    if (!x || !y) { if (Boolean(x) !== Boolean(y) || (x && x.rows)) return false; continue; }
+    if (x.cols !== y.cols || y.rows < x.rows || y.rows - x.rows > extra) return false;
+    const p = x.data, q = y.data;
+    for (let j = 0; j < p.length; j++) if (p[j] !== q[j]) return false;
+  }
+  return true;
+}
+
 export class WorldView {
   constructor(canvas) {
     this.canvas = canvas;
     this.ctx = canvas.getContext('2d');
     this.bounds = [0, 0, 10, 10];
+    this.layers = {}; // cached layers (cached())
     this.fit();
+  }
+
+  // A layer drawn from sections that often stay the same for many frames (the background; the paths; a graph back
+  // end's landmarks between two optimisations): once they have stayed the same (with the view) for `settle` frames
+  // in a row, the layer is drawn into an offscreen canvas and copied from there (one drawImage) until they change.
+  // Options: `append` rows may be added to the sections and are drawn directly over the copy (at most 64, then the
+  // layer is redrawn); the last `live` rows of each section are never cached (a path's newest point moves every
+  // frame). Sections that change every frame (an EKF's landmarks) are drawn directly, at the cost of a comparison.
+  // drawFn(from, to) draws rows from[i]..to[i]-1 of section i and returns a count (summed over the two parts).
+  cached(name, secs, settle, drawFn, { append = false, live = 0 } = {}) {
+    const view = [this.scale, this.ox, this.oy, this.canvas.width, this.canvas.height];
+    const L = this.layers[name] || (this.layers[name] = { secs: null, view: null, same: 0, ready: false, off: null });
+    const rows = secs.map((x) => (x ? x.rows : 0));
+    const extra = append ? 64 + live : live;
+    if (L.secs && L.view.every((v, i) => v === view[i]) && extendsSections(L.secs, secs, extra)) {
+      L.same += 1;
+    } else {
+      // copies of the rows to cache: the sections' arrays are views into a frame buffer the next frame replaces
+      L.secs = secs.map((x) => {
+        if (!x) return x;
+        const r = Math.max(x.rows - live, 0);
+        return { rows: r, cols: x.cols, data: x.data.slice(0, r * x.cols) };
+      });
+      L.view = view; L.same = 0; L.ready = false;
+    }
+    const c = this.ctx, zero = rows.map(() => 0);
+    if (L.same < settle) return drawFn(zero, rows);
+    const kept = L.secs.map((x) => (x ? x.rows : 0));
+    if (!L.ready) {
+      if (!L.off || L.off.width !== this.canvas.width || L.off.height !== this.canvas.height) {
+        L.off = new OffscreenCanvas(this.canvas.width, this.canvas.height);
+      }
+      this.ctx = L.off.getContext('2d');
+      try {
+        this.ctx.setTransform(1, 0, 0, 1, 0, 0);
+        this.ctx.clearRect(0, 0, L.off.width, L.off.height);
+        L.result = drawFn(zero, kept);
+      } finally {
+        this.ctx = c;
+      }
+      L.ready = true;
+    }
+    c.setTransform(1, 0, 0, 1, 0, 0);
+    c.drawImage(L.off, 0, 0);
+    return rows.some((r, i) => r > kept[i]) ? (L.result || 0) + drawFn(kept, rows) : L.result;
+  }
+
+  // the background: white, the grid image, the walls (when there is no grid) and the true landmarks
+  base(s) {
+    this.cached('base', [s.GRID, s.GRDM, s.WALL, s.TLMK], 0, () => {
+      this.clear();
+      this.grid(s.GRID, s.GRDM);
+      if (!s.GRID) this.segments(s.WALL, COLORS.wall, 2);
+      this.crosses(s.TLMK, COLORS.trueLm, 4);
+    });
   }
 
   setBounds(b) {
@@ -52,21 +122,23 @@ export class WorldView {
     c.strokeStyle = color; c.lineWidth = width; c.stroke();
   }
 
-  path(s, color, width = 2, dash = []) {
-    if (!s || s.rows < 2) return;
+  // a polyline through rows from..to-1 (one path, one stroke)
+  path(s, color, width = 2, dash = [], from = 0, to = Infinity) {
+    const end = s ? Math.min(s.rows, to) : 0;
+    if (end - from < 2) return;
     const c = this.ctx, d = s.data;
     c.beginPath();
-    c.moveTo(this.px(d[0]), this.py(d[1]));
-    for (let i = 1; i < s.rows; i++) c.lineTo(this.px(d[2 * i]), this.py(d[2 * i + 1]));
+    c.moveTo(this.px(d[2 * from]), this.py(d[2 * from + 1]));
+    for (let i = from + 1; i < end; i++) c.lineTo(this.px(d[2 * i]), this.py(d[2 * i + 1]));
     c.setLineDash(dash); c.strokeStyle = color; c.lineWidth = width; c.stroke(); c.setLineDash([]);
   }
 
   // points as small squares (fast: one path, one fill)
-  dots(s, color, size = 4, stride = null) {
+  dots(s, color, size = 4, stride = null, from = 0, to = Infinity) {
     if (!s || s.rows === 0) return;
-    const c = this.ctx, d = s.data, k = stride || s.cols, h = size / 2;
+    const c = this.ctx, d = s.data, k = stride || s.cols, h = size / 2, end = Math.min(s.rows, to);
     c.beginPath();
-    for (let i = 0; i < s.rows; i++) c.rect(this.px(d[k * i]) - h, this.py(d[k * i + 1]) - h, size, size);
+    for (let i = from; i < end; i++) c.rect(this.px(d[k * i]) - h, this.py(d[k * i + 1]) - h, size, size);
     c.fillStyle = color; c.fill();
   }
 
@@ -114,25 +186,35 @@ export class WorldView {
   }
 
   // 95% ellipses of 2x2 covariances (row-major, 4 per row) centred on means (2 per row); all in one path.
-  // The 2x2 eigen-decomposition is closed form; k = sqrt(chi2_2(0.95)) = sqrt(5.991).
-  ellipses(means, covs, color, meanStride = 2) {
-    if (!means || !covs || covs.rows === 0) return;
-    const c = this.ctx, m = means.data, v = covs.data, n = Math.min(means.rows, covs.rows);
-    const k = Math.sqrt(5.991), seg = 24;
+  // The 2x2 eigen-decomposition is closed form; k = sqrt(chi2_2(0.95)) = sqrt(5.991). Each ellipse gets as many
+  // segments as its size in pixels needs (chord error about 1/4 px: n = pi sqrt(2 r), 8..24), and one whose
+  // major semi-axis is under minPx pixels is not stroked: it would lie inside the landmark's 5-pixel dot.
+  ellipses(means, covs, color, meanStride = 2, minPx = 2, from = 0, to = Infinity) {
+    if (!means || !covs || covs.rows === 0) return 0;
+    const c = this.ctx, m = means.data, v = covs.data, n = Math.min(means.rows, covs.rows, to);
+    const k = Math.sqrt(5.991), sc = this.scale;
+    let drawn = 0;
     c.beginPath();
-    for (let i = 0; i < n; i++) {
+    for (let i = from; i < n; i++) {
       const a = v[4 * i], b = 0.5 * (v[4 * i + 1] + v[4 * i + 2]), d = v[4 * i + 3];
       const mean = 0.5 * (a + d), rad = Math.sqrt(Math.max(0.25 * (a - d) * (a - d) + b * b, 0));
       const l1 = Math.sqrt(Math.max(mean + rad, 0)) * k, l2 = Math.sqrt(Math.max(mean - rad, 0)) * k;
+      const r = l1 * sc;
+      if (!(r >= minPx)) continue; // tiny (or NaN)
+      const seg = Math.min(24, Math.max(8, Math.ceil(Math.PI * Math.sqrt(2 * r))));
       const ang = 0.5 * Math.atan2(2 * b, a - d), ca = Math.cos(ang), sa = Math.sin(ang);
-      const mx = m[meanStride * i], my = m[meanStride * i + 1];
-      for (let j = 0; j <= seg; j++) {
-        const t = (2 * Math.PI * j) / seg, ex = l1 * Math.cos(t), ey = l2 * Math.sin(t);
-        const X = this.px(mx + ca * ex - sa * ey), Y = this.py(my + sa * ex + ca * ey);
-        if (j === 0) c.moveTo(X, Y); else c.lineTo(X, Y);
+      const X0 = this.px(m[meanStride * i]), Y0 = this.py(m[meanStride * i + 1]);
+      // in pixels: x right, y down (the world's y axis flipped)
+      const ux = sc * l1 * ca, uy = -sc * l1 * sa, vx = -sc * l2 * sa, vy = -sc * l2 * ca;
+      c.moveTo(X0 + ux, Y0 + uy);
+      for (let j = 1; j <= seg; j++) {
+        const t = (2 * Math.PI * j) / seg, ct = Math.cos(t), st = Math.sin(t);
+        c.lineTo(X0 + ct * ux + st * vx, Y0 + ct * uy + st * vy);
       }
+      drawn += 1;
     }
     c.strokeStyle = color; c.lineWidth = 1; c.stroke();
+    return drawn;
   }
 
   // association lines: x,y (observation), x,y (landmark), flag (1 correct, 0 wrong)

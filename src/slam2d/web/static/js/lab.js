@@ -19,10 +19,13 @@ const lab = {
   page, frames: 0, bytes: 0, drawn: 0, fps: 0, recvFps: 0, seq: -1, decodeMs: 0, drawMs: 0,
   pose: null, estPose: null, counters: {}, values: {}, notices: [], errors: [], hello: null, connected: false, states: 0,
   rows: [], inactive: [], zoom: null, feedback: null,
-  sections: {},
+  sections: {}, record: 0, recorded: null,
   send: (obj) => send(obj),
+  // benchmark hook: draw a recorded frame now (and finish its pixels), without the websocket
+  drawBuffer: (buf) => { latest = decodeFrame(buf); draw(); view.ctx.getImageData(0, 0, 1, 1); },
 };
 window.slamLab = lab;
+lab.view = view; // benchmark hook
 
 let ws = null;
 let latest = null;
@@ -252,6 +255,7 @@ function onFrame(buf) {
   lab.decodeMs = performance.now() - t0;
   lab.frames += 1;
   lab.bytes += buf.byteLength;
+  if (lab.recorded && lab.recorded.length < lab.record) lab.recorded.push(buf.slice(0)); // benchmark hook
   lab.seq = f.seq;
   latest = f;
   const s = f.sections;
@@ -276,25 +280,49 @@ function connect() {
   ws.onmessage = (ev) => { if (typeof ev.data === 'string') onText(ev.data); else onFrame(ev.data); };
 }
 
+// the numbers panel, at most 10 times a second (text that changes 60 times a second cannot be read, and every
+// change re-lays out the page); only the values whose text changed are written
+let numbersAt = -Infinity;
+const numberEls = new Map();
+function showNumbers(now) {
+  if (now - numbersAt < 100) return;
+  numbersAt = now;
+  for (const [n, v] of Object.entries(lab.counters)) {
+    let el = numberEls.get(n);
+    if (!el || !el.isConnected) {
+      el = numbersEl.querySelector(`[data-num="${n}"]`);
+      numberEls.set(n, el);
+    }
+    const text = fmt(v);
+    if (el && el.textContent !== text) el.textContent = text;
+  }
+}
+
 function draw() {
   if (!latest || latest.seq === drawnSeq) return;
   const t0 = performance.now();
   const s = latest.sections;
   fitEstimate(s);
-  view.clear();
-  view.grid(s.GRID, s.GRDM);
-  if (!s.GRID) view.segments(s.WALL, COLORS.wall, 2);
+  view.base(s); // white, grid image, walls, true landmarks: redrawn only when they or the view change
   view.dots(s.SCAN, COLORS.scan, 2);
   view.segments(s.GEDG, COLORS.graphEdge, 1);
-  view.path(s.TPTH, COLORS.truePath, 2);
   view.circle(s.RNGE, COLORS.range);
-  view.path(s.GHST, COLORS.ghost, 1.5, [2, 3]);
-  view.path(s.EPTH, COLORS.estPath, 2, [6, 4]);
-  view.crosses(s.TLMK, COLORS.trueLm, 4);
+  // the paths: a path's rows stay put while it grows (the server's power-of-two stride), its newest row moves; the
+  // part drawn directly starts at the last cached row, so the two parts join
+  view.cached('paths', [s.TPTH, s.GHST, s.EPTH], 1, (from, to) => {
+    const f = from.map((v) => Math.max(v - 1, 0));
+    view.path(s.TPTH, COLORS.truePath, 2, [], f[0], to[0]);
+    view.path(s.GHST, COLORS.ghost, 1.5, [2, 3], f[1], to[1]);
+    view.path(s.EPTH, COLORS.estPath, 2, [6, 4], f[2], to[2]);
+  }, { append: true, live: 1 });
   if (s.OCOV) view.ellipses(s.OBSV, s.OCOV, COLORS.obsEllipse);
   view.rays(s.EPOS, s.OBSV, COLORS.obs);
-  view.ellipses(s.ELMK, s.ECOV, COLORS.ellipse);
-  view.dots(s.ELMK, COLORS.estLm, 5);
+  // the estimated landmarks and their ellipses: a graph back end moves them only when it optimises
+  lab.ellipsesDrawn = view.cached('landmarks', [s.ELMK, s.ECOV], 1, (from, to) => {
+    const n = view.ellipses(s.ELMK, s.ECOV, COLORS.ellipse, 2, 2, from[0], to[0]);
+    view.dots(s.ELMK, COLORS.estLm, 5, null, from[0], to[0]);
+    return n;
+  }, { append: true });
   view.dots(s.GNOD, COLORS.graphNode, 3);
   view.dots(s.PART, COLORS.particle, 3, 3);
   view.matches(s.MTCH);
@@ -307,10 +335,7 @@ function draw() {
   view.robot(s.EPOS, COLORS.estRobot, 0.35);
   if (heatCanvas) drawHeat(heatCanvas, s.HEAT);
   if (zoomCanvas) lab.zoom = drawParticleZoom(zoomCanvas, s.PART, s.TPOS);
-  for (const [n, v] of Object.entries(lab.counters)) {
-    const el = numbersEl.querySelector(`[data-num="${n}"]`);
-    if (el) el.textContent = fmt(v);
-  }
+  showNumbers(t0);
   drawnSeq = latest.seq;
   lab.drawn += 1;
   lab.drawMs = performance.now() - t0;
