@@ -27,8 +27,9 @@ $(RUN_STAMP): pyproject.toml
 	rm -f $(VENV)/.installed-run-*
 	touch $(RUN_STAMP)
 
+# one BLAS thread: the lab's matrices are small, and BLAS threads on a busy machine slow a step 20x
 run: $(RUN_STAMP)
-	@$(VENV)/bin/slam2d lab --port $(PORT)
+	@OPENBLAS_NUM_THREADS=$${OPENBLAS_NUM_THREADS:-1} $(VENV)/bin/slam2d lab --port $(PORT)
 
 demo: $(STAMP)
 	$(VENV)/bin/slam2d demo --out out
