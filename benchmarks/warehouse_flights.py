@@ -93,10 +93,10 @@ def changes(a: MapSnapshot, b: MapSnapshot, walls_a: np.ndarray, walls_b: np.nda
     flights' worlds are the moved pallets' faces (old and new). Reported: the IoU of the two static layers outside
     the moved pallets (one cell of margin), and where the cells that joined / left the static layer lie."""
     res = a.occupancy_resolution_m
-    key = lambda w: {tuple(np.round(r, 6)) for r in w}  # noqa: E731
-    ka, kb = key(walls_a), key(walls_b)
-    gone = np.array([w for w in walls_a if tuple(np.round(w, 6)) not in kb]).reshape(-1, 4)
-    came = np.array([w for w in walls_b if tuple(np.round(w, 6)) not in ka]).reshape(-1, 4)
+    wa, wb = np.round(walls_a, 6).reshape(-1, 4), np.round(walls_b, 6).reshape(-1, 4)
+    ka, kb = set(map(tuple, wa.tolist())), set(map(tuple, wb.tolist()))
+    gone = walls_a.reshape(-1, 4)[[tuple(w) not in kb for w in wa.tolist()]]
+    came = walls_b.reshape(-1, 4)[[tuple(w) not in ka for w in wb.tolist()]]
     old_cells, new_cells = dilate(segment_cells(gone, res)), dilate(segment_cells(came, res))
     moved = old_cells | new_cells
     ca, cb = occupied_cells(a), occupied_cells(b)

@@ -34,6 +34,11 @@ def _session(flight: int, steps: int, prior=None) -> tuple[LidarSession, object]
     return est, (log, res)
 
 
+def _static_cells(lay: MapLayers) -> set[tuple[int, ...]]:
+    """Global integer cells of a layer's static cells (layers on one lattice compare cell by cell)."""
+    return set(map(tuple, np.floor(lay.static_points() / lay.resolution).astype(int).tolist()))
+
+
 @pytest.fixture(scope="module")
 def first_flight(tmp_path_factory):
     """Flight 1 (cold start): its saved map, the session, and its largest position error (the map's drift)."""
@@ -82,8 +87,7 @@ def test_a_later_flight_relocalises_onto_the_saved_layer_and_keeps_its_frame(fir
     assert np.allclose(off, np.round(off), atol=1e-6)  # the same cell lattice (the layer may have grown)
     f1 = MapLayers.from_saved(LayersConfig(), snap.layers)
     f2 = MapLayers.from_saved(LayersConfig(), two.layers)
-    cells = lambda lay: {tuple(np.floor(p / lay.resolution).astype(int)) for p in lay.static_points()}  # noqa: E731
-    c1, c2 = cells(f1), cells(f2)
+    c1, c2 = _static_cells(f1), _static_cells(f2)
     assert len(c1 & c2) / len(c1 | c2) > 0.85  # the same racks; pallets moved and new ground seen
 
 
