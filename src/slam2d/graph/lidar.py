@@ -36,17 +36,15 @@ need the layers re-drawn from moved keyframes, which this mode does not do.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import numpy as np
 from numpy.typing import NDArray
 
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, LoopEvent
-from slam2d.frontend.correlative import correlative_match
 from slam2d.frontend.icp import ICPTarget, icp, prepare_target
 from slam2d.geometry import se2
 from slam2d.graph.incremental import IncrementalPoseGraph
 from slam2d.graph.lidar_config import LidarSLAMConfig, LifelongLidarConfig
+from slam2d.graph.lidar_loops import LoopCheck, confirmed_mask, verify_loop
 from slam2d.graph.lidar_markers import KeyframeMarkers, MarkerPoseGraph
 from slam2d.log import Scan, Step
 from slam2d.maps.layers import DYNAMIC, LayerStats, MapLayers, PoseBuffer
@@ -339,29 +337,29 @@ class LidarSLAM(EstimatorLifecycle):
                 cand.append(c)
             if len(cand) == cfg.loop_candidates:
                 break
-        out = []
-        for c in cand:
+        return [(c, *self._verify_candidate(c, k, pose, pts)) for c in cand]
+
+    def _verify_candidate(self, c: int, k: int, pose: Array, pts: Array) -> tuple[Array, Array, bool]:
+        """Verify old keyframe ``c`` as a loop of new keyframe ``k`` at ``pose`` (scan points ``pts``):
+        (T_c_k, information, ok)."""
+        chk = self._check_candidate(c, k, pose, pts)
+        return chk.transform, chk.information, chk.ok
+
+    def _check_candidate(self, c: int, k: int, pose: Array, pts: Array) -> LoopCheck:
+        """Every gate of a loop candidate, with the values it saw (:mod:`slam2d.graph.lidar_loops`)."""
+        assert self.graph is not None
+        cfg = self.config
+        m, poses = cfg.loop_map_keyframes, self.graph.poses
+        if cfg.loop_static_radius_m > 0:
+            # both sides keep only structure two keyframes saw in one place (moving objects drop out): the old
+            # keyframe's local map, and the new scan against the keyframes just before it
+            old = [self._world_points(j, j + 1, frame=poses[c]) for j in range(max(c - m, 0), min(c + m + 1, k))]
+            target = np.vstack(old)[confirmed_mask(old, cfg.loop_static_radius_m, cfg.loop_static_normal_rad)]
+            new = [pts] + [self._world_points(j, j + 1, frame=pose) for j in range(max(k - m, 0), k)]
+            pts = pts[confirmed_mask(new, cfg.loop_static_radius_m, cfg.loop_static_normal_rad)[:len(pts)]]
+        else:
             target = self._world_points(c - m, c + m + 1, frame=poses[c])
-            guess = se2.between(poses[c], pose)
-            cm = correlative_match(pts, target, guess, cfg.correlative)
-            ok = cm.score >= cfg.loop_min_score and cm.ambiguity <= cfg.loop_max_ambiguity
-            info: Array = np.zeros((3, 3))
-            t = cm.transform
-            if ok:
-                res = icp(pts, target, initial=cm.transform, config=cfg.loop_icp)
-                ok = bool(res.converged and res.fitness >= cfg.loop_min_fitness and res.rmse_m <= cfg.loop_max_rmse_m
-                          and np.all(np.isfinite(res.covariance))
-                          and np.sqrt(np.linalg.eigvalsh(res.covariance[:2, :2])[-1]) <= cfg.loop_max_sigma_m)
-                if ok:
-                    floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
-                    info = np.asarray(np.linalg.inv(res.covariance + floor), dtype=np.float64)
-                    e = se2.local(res.transform, cm.transform)
-                    ok = float(e @ info @ e) <= cfg.loop_chi2
-                    t = res.transform
-                if ok and cfg.loop_wide_window_m > 0:
-                    ok = self._unique_in_wide_window(pts, target, t)
-            out.append((c, t, info, ok))
-        return out
+        return verify_loop(pts, target, se2.between(poses[c], pose), cfg)
 
     def close_loop_now(self, z: Array) -> bool:
         """Search loops for the newest keyframe now (the lab's "close loop now"); ``z`` (the newest landmark
@@ -381,15 +379,6 @@ class LidarSLAM(EstimatorLifecycle):
             self.loops_accepted += len(found)
         self._new_loops = self._new_loops + tuple(events)
         return bool(found)
-
-    def _unique_in_wide_window(self, pts: Array, target: Array, t: Array) -> bool:
-        """Is ``t`` the only good alignment within ``loop_wide_window_m``? A coarse correlative search over the wide
-        window (every third point, coarse steps of ``loop_wide_step_cells`` cells): a parallel identical aisle
-        lies outside the verification window but inside this one, and scores as well."""
-        cfg = self.config
-        wide = replace(cfg.correlative, window_xy_m=cfg.loop_wide_window_m, coarse_cells=cfg.loop_wide_step_cells,
-                       max_refined=1)
-        return correlative_match(pts[::3], target, t, wide).ambiguity <= cfg.loop_wide_max_ambiguity
 
     # ------------------------------------------------------------------ outputs
     def trajectory(self) -> Array:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from slam2d.config import check_positive
+from slam2d.config import check_nonnegative, check_positive
 from slam2d.frontend.correlative import CorrelativeConfig
 from slam2d.frontend.icp import ICPConfig
 from slam2d.graph.incremental import IncrementalConfig
@@ -56,6 +56,13 @@ class LidarSLAMConfig:
     """at most this many candidates (the nearest) are verified per search."""
     loop_map_keyframes: int = 2
     """a candidate's local map: its keyframe and this many on each side."""
+    loop_static_radius_m: float = 0.1
+    """a candidate's local map keeps only points within this distance of a point of another of its keyframes
+    (m; 0: every point): a moving object is seen at a different place by each keyframe, and a loop matched on it
+    slides along an aisle with the object (the warehouse's false loops, all on forklifts)."""
+    loop_static_normal_rad: float = 1.0
+    """... and whose normal is within this angle of that point's: the end face of an object that slid along its
+    own side is not confirmed by the side (rad)."""
     correlative: CorrelativeConfig = field(default_factory=CorrelativeConfig)
     """the correlative search of a loop candidate."""
     loop_min_score: float = 0.5
@@ -82,6 +89,9 @@ class LidarSLAMConfig:
     loop_max_sigma_m: float = 0.05
     """a loop's ICP covariance must constrain every direction: its largest translational standard deviation must
     be below this (m). A corridor or aisle leaves the axis unconstrained, and a loop there would be a guess."""
+    loop_min_support: float = 0.0
+    """a loop needs this many matched points whose surface faces its weakest translational direction
+    (:func:`slam2d.graph.lidar_loops.weakest_support`; 0: off)."""
     loop_chi2: float = 16.27
     """chi-square gate (3 dof, p = 0.001) on the ICP covariance between the correlative and the ICP result."""
     loop_confirmations: int = 1
@@ -119,7 +129,8 @@ class LidarSLAMConfig:
         check_positive(self, "keyframe_distance_m", "keyframe_angle_rad", "max_range_m", "min_sigma_xy_m",
                        "min_sigma_theta_rad", "loop_radius_m", "loop_min_fitness", "loop_max_rmse_m", "loop_chi2",
                        "loop_max_sigma_m", "map_resolution_m", "loop_pair_xy_m", "loop_pair_theta_rad",
-                       "min_fitness", "loop_min_score", "loop_max_ambiguity", "loop_wide_max_ambiguity")
+                       "loop_static_normal_rad", "min_fitness", "loop_min_score", "loop_max_ambiguity",
+                       "loop_wide_max_ambiguity")
         if self.loop_confirmations not in (0, 1):
             raise ValueError(f"LidarSLAMConfig.loop_confirmations must be 0 or 1 (got {self.loop_confirmations})")
         for n in ("local_map_keyframes", "loop_every", "loop_candidates", "loop_min_separation",
@@ -130,6 +141,7 @@ class LidarSLAMConfig:
             raise ValueError("LidarSLAMConfig.layers needs loop_closure=False: a loop would move keyframes under a "
                              "static layer that was built at the tracked poses")
         check_positive(self, "coverage_m", "match_points", "min_inliers")
+        check_nonnegative(self, "loop_static_radius_m", "loop_min_support")
         if self.loop_map_keyframes < 0:
             raise ValueError(f"LidarSLAMConfig.loop_map_keyframes must be >= 0 (got {self.loop_map_keyframes})")
 
