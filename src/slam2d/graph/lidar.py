@@ -354,9 +354,11 @@ class LidarSLAM(EstimatorLifecycle):
             # both sides keep only structure two keyframes saw in one place (moving objects drop out): the old
             # keyframe's local map, and the new scan against the keyframes just before it
             old = [self._world_points(j, j + 1, frame=poses[c]) for j in range(max(c - m, 0), min(c + m + 1, k))]
-            target = np.vstack(old)[confirmed_mask(old, cfg.loop_static_radius_m, cfg.loop_static_normal_rad)]
+            target = np.vstack(old)[confirmed_mask(old, cfg.loop_static_radius_m, cfg.loop_static_normal_rad,
+                                                    cfg.loop_static_seen_m)]
             new = [pts] + [self._world_points(j, j + 1, frame=pose) for j in range(max(k - m, 0), k)]
-            pts = pts[confirmed_mask(new, cfg.loop_static_radius_m, cfg.loop_static_normal_rad)[:len(pts)]]
+            pts = pts[confirmed_mask(new, cfg.loop_static_radius_m, cfg.loop_static_normal_rad,
+                                     cfg.loop_static_seen_m)[:len(pts)]]
         else:
             target = self._world_points(c - m, c + m + 1, frame=poses[c])
         return verify_loop(pts, target, se2.between(poses[c], pose), cfg)

@@ -63,6 +63,9 @@ class LidarSLAMConfig:
     loop_static_normal_rad: float = 1.0
     """... and whose normal is within this angle of that point's: the end face of an object that slid along its
     own side is not confirmed by the side (rad)."""
+    loop_static_seen_m: float = 0.5
+    """... among the points near which another keyframe saw something within this distance (m): a surface only
+    one keyframe saw is kept (see :func:`slam2d.graph.lidar_loops.confirmed_mask`)."""
     correlative: CorrelativeConfig = field(default_factory=CorrelativeConfig)
     """the correlative search of a loop candidate."""
     loop_min_score: float = 0.5
@@ -129,8 +132,8 @@ class LidarSLAMConfig:
         check_positive(self, "keyframe_distance_m", "keyframe_angle_rad", "max_range_m", "min_sigma_xy_m",
                        "min_sigma_theta_rad", "loop_radius_m", "loop_min_fitness", "loop_max_rmse_m", "loop_chi2",
                        "loop_max_sigma_m", "map_resolution_m", "loop_pair_xy_m", "loop_pair_theta_rad",
-                       "loop_static_normal_rad", "min_fitness", "loop_min_score", "loop_max_ambiguity",
-                       "loop_wide_max_ambiguity")
+                       "loop_static_normal_rad", "loop_static_seen_m", "min_fitness", "loop_min_score",
+                       "loop_max_ambiguity", "loop_wide_max_ambiguity")
         if self.loop_confirmations not in (0, 1):
             raise ValueError(f"LidarSLAMConfig.loop_confirmations must be 0 or 1 (got {self.loop_confirmations})")
         for n in ("local_map_keyframes", "loop_every", "loop_candidates", "loop_min_separation",

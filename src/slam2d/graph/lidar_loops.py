@@ -84,21 +84,33 @@ def verify_loop(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig) -
     return replace(out, ok=True)
 
 
-def confirmed_mask(clouds: list[Array], radius_m: float, max_normal_angle_rad: float) -> NDArray[np.bool_]:
-    """Which points of ``clouds`` (keyframe scans in one frame; mask over their concatenation) another cloud saw on
-    the same surface: a point of another cloud within ``radius_m`` whose normal is within ``max_normal_angle_rad``.
-    A moving object is seen at a different place by each keyframe and drops out (a parked one stays), as does a
-    point seen by one keyframe only; the normal test keeps the end face of an object that slid along its own side
-    from being confirmed by that side."""
-    pts = np.vstack(clouds)
-    owner = np.repeat(np.arange(len(clouds)), [len(c) for c in clouds])
-    normals = np.vstack([estimate_normals(c) if len(c) >= 2 else np.zeros((len(c), 2)) for c in clouds])
-    pairs = cKDTree(pts).query_pairs(radius_m, output_type="ndarray")
-    same = (owner[pairs[:, 0]] != owner[pairs[:, 1]]) & \
-        (np.abs(np.einsum("ij,ij->i", normals[pairs[:, 0]], normals[pairs[:, 1]])) >= np.cos(max_normal_angle_rad))
-    keep = np.zeros(len(pts), dtype=bool)
-    keep[pairs[same].ravel()] = True
-    return keep
+def confirmed_mask(clouds: list[Array], radius_m: float, max_normal_angle_rad: float,
+                   seen_m: float) -> NDArray[np.bool_]:
+    """Which points of ``clouds`` (keyframe scans in one frame; mask over their concatenation) are not contradicted
+    by another cloud. A point is contradicted when another cloud has points within ``seen_m`` of it (it looked
+    there) but none within ``radius_m`` whose normal is within ``max_normal_angle_rad`` of the point's (it saw no
+    such surface there). A moving object is seen at a different place by each keyframe and drops out (a parked one
+    stays); a surface seen by one keyframe only stays; the normal test keeps the end face of an object that slid
+    along its own side from being confirmed by that side."""
+    normals = [estimate_normals(c) if len(c) >= 2 else np.zeros((len(c), 2)) for c in clouds]
+    trees = [cKDTree(c) for c in clouds]
+    cos_max = np.cos(max_normal_angle_rad)
+    keep = []
+    for i, c in enumerate(clouds):
+        seen = np.zeros(len(c), dtype=bool)
+        confirmed = np.zeros(len(c), dtype=bool)
+        for j, tree in enumerate(trees):
+            if j == i or not len(clouds[j]):
+                continue
+            kk = min(4, len(clouds[j]))
+            d, idx = tree.query(c, k=kk, distance_upper_bound=seen_m)
+            d, idx = d.reshape(len(c), kk), idx.reshape(len(c), kk)
+            seen |= np.isfinite(d[:, 0])
+            near = d < radius_m
+            nj = normals[j][np.minimum(idx, len(clouds[j]) - 1)]  # (N,k,2); missing neighbours are masked by near
+            confirmed |= np.any(near & (np.abs(np.einsum("nkd,nd->nk", nj, normals[i])) >= cos_max), axis=1)
+        keep.append(confirmed | ~seen)
+    return np.concatenate(keep) if keep else np.zeros(0, dtype=bool)
 
 
 def weakest_support(pts: Array, target: ICPTarget, t: Array, cfg: LidarSLAMConfig) -> float:
