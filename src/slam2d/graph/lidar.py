@@ -13,7 +13,10 @@ Per step (one scan):
    least ``loop_min_separation`` keyframes older) are verified against a local map around each: correlative
    matching over a window (:mod:`slam2d.frontend.correlative`; the score must be high and no competing alignment
    nearly as good, which rejects parallel identical aisles and corridor axes), then ICP refinement (fitness and
-   residual gates) and a chi-square gate on the ICP covariance between the correlative and ICP results;
+   residual gates) and a chi-square gate on the ICP covariance between the correlative and ICP results; a loop
+   in a self-similar place (ambiguity above ``loop_static_ambiguity``) is verified again on static structure only,
+   the points no other keyframe contradicts (:mod:`slam2d.graph.lidar_loops`): along an aisle a moving forklift
+   can be all that breaks the tie;
 4. the keyframe and its edges enter :class:`~slam2d.graph.incremental.IncrementalPoseGraph`: a local solve when
    the step brought a loop, a whole-graph iteration every ``graph.full_every`` keyframes, the whole graph to
    convergence in ``finalize`` (bounded work per scan; no full re-analysis when one node is added).
@@ -350,18 +353,19 @@ class LidarSLAM(EstimatorLifecycle):
         assert self.graph is not None
         cfg = self.config
         m, poses = cfg.loop_map_keyframes, self.graph.poses
-        if cfg.loop_static_radius_m > 0:
-            # both sides keep only structure two keyframes saw in one place (moving objects drop out): the old
-            # keyframe's local map, and the new scan against the keyframes just before it
+        guess = se2.between(poses[c], pose)
+        target = self._world_points(c - m, c + m + 1, frame=poses[c])
+        chk = verify_loop(pts, target, guess, cfg)
+        if cfg.loop_static_radius_m > 0 and chk.ok and chk.ambiguity > cfg.loop_static_ambiguity:
+            # a self-similar place: verify again on what two keyframes saw on the same surface (a moving object
+            # may be all that breaks the tie): the old keyframe's local map, the new scan against the keyframes
+            # just before it
+            r, a, s = cfg.loop_static_radius_m, cfg.loop_static_normal_rad, cfg.loop_static_seen_m
             old = [self._world_points(j, j + 1, frame=poses[c]) for j in range(max(c - m, 0), min(c + m + 1, k))]
-            target = np.vstack(old)[confirmed_mask(old, cfg.loop_static_radius_m, cfg.loop_static_normal_rad,
-                                                    cfg.loop_static_seen_m)]
             new = [pts] + [self._world_points(j, j + 1, frame=pose) for j in range(max(k - m, 0), k)]
-            pts = pts[confirmed_mask(new, cfg.loop_static_radius_m, cfg.loop_static_normal_rad,
-                                     cfg.loop_static_seen_m)[:len(pts)]]
-        else:
-            target = self._world_points(c - m, c + m + 1, frame=poses[c])
-        return verify_loop(pts, target, se2.between(poses[c], pose), cfg)
+            static_pts = pts[confirmed_mask(new, r, a, s)[:len(pts)]]
+            chk = verify_loop(static_pts, np.vstack(old)[confirmed_mask(old, r, a, s)], guess, cfg)
+        return chk
 
     def close_loop_now(self, z: Array) -> bool:
         """Search loops for the newest keyframe now (the lab's "close loop now"); ``z`` (the newest landmark
