@@ -98,9 +98,6 @@ class LidarSLAMConfig:
     loop_max_sigma_m: float = 0.05
     """a loop's ICP covariance must constrain every direction: its largest translational standard deviation must
     be below this (m). A corridor or aisle leaves the axis unconstrained, and a loop there would be a guess."""
-    loop_min_support: float = 0.0
-    """a loop needs this many matched points whose surface faces its weakest translational direction
-    (:func:`slam2d.graph.lidar_loops.weakest_support`; 0: off)."""
     loop_chi2: float = 16.27
     """chi-square gate (3 dof, p = 0.001) on the ICP covariance between the correlative and the ICP result."""
     loop_confirmations: int = 1
@@ -150,7 +147,7 @@ class LidarSLAMConfig:
             raise ValueError("LidarSLAMConfig.layers needs loop_closure=False: a loop would move keyframes under a "
                              "static layer that was built at the tracked poses")
         check_positive(self, "coverage_m", "match_points", "min_inliers")
-        check_nonnegative(self, "loop_static_radius_m", "loop_min_support")
+        check_nonnegative(self, "loop_static_radius_m")
         if self.loop_map_keyframes < 0:
             raise ValueError(f"LidarSLAMConfig.loop_map_keyframes must be >= 0 (got {self.loop_map_keyframes})")
 
