@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg import blas, solve_triangular
+from scipy.linalg import blas, lapack, solve_triangular
 
 from slam2d.association import AssociationConfig, AssociationResult, Candidates, associate
 from slam2d.association.predict import innovation_covariance, joint_innovation_covariance
@@ -331,17 +331,18 @@ def _joint_update_upper(mu: Array, P: Array, js: IntArray, z: Array, R: Array, c
     hp, hl = range_bearing_jacobians(np.broadcast_to(pose, (k, POSE_DIM)), lms)  # (K,2,3), (K,2,2)
     nu = np.column_stack([z[:, 0] - z_pred[:, 0], wrap_angle(z[:, 1] - z_pred[:, 1])]).reshape(-1)
     hp2 = hp.reshape(2 * k, POSE_DIM)
-    B = hp2 @ rows[:POSE_DIM] + np.einsum("kab,kbn->kan", hl, rows[POSE_DIM:].reshape(k, 2, n)).reshape(2 * k, n)
+    B = hp2 @ rows[:POSE_DIM] + np.matmul(hl, rows[POSE_DIM:].reshape(k, 2, n)).reshape(2 * k, n)  # H P, (m, n)
     S = B[:, :POSE_DIM] @ hp2.T + np.einsum("mkb,kab->mka", B[:, lm_rows], hl).reshape(2 * k, 2 * k)
     S.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :] += R
-    try:
-        L = np.linalg.cholesky(0.5 * (S + S.T))
-    except np.linalg.LinAlgError:
-        raise CovarianceError("joint innovation covariance S is not positive definite") from None
-    # C^T = B^T L^-T straight from BLAS on the Fortran view B.T (no copies); C = L^-1 B as in the single batch
-    ct = blas.dtrsm(1.0, L, B.T, side=1, lower=1, trans_a=1, overwrite_b=1)
-    w = solve_triangular(L, nu, lower=True, check_finite=False)
-    mu += ct @ w
+    L, info = lapack.dpotrf(0.5 * (S + S.T), lower=1, clean=1, overwrite_a=1)
+    if info != 0:
+        raise CovarianceError("joint innovation covariance S is not positive definite")
+    l_inv, info = lapack.dtrtri(L, lower=1, overwrite_c=1)
+    if info != 0:  # pragma: no cover - a Cholesky factor has a positive diagonal
+        raise CovarianceError("joint innovation covariance S is singular")
+    # C^T = B^T L^-T from BLAS on the Fortran view B.T (no copies): C = L^-1 B as in the single batch
+    ct = blas.dtrmm(1.0, l_inv, B.T, side=1, lower=1, trans_a=1, overwrite_b=1)
+    mu += ct @ (l_inv @ nu)
     mu[2] = wrap_angle_scalar(mu[2])
     # P.T is P's memory in Fortran order; its lower triangle is P's upper one
     out = blas.dsyrk(-1.0, ct, 1.0, P.T, trans=0, lower=1, overwrite_c=1)
