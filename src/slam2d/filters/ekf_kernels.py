@@ -12,6 +12,9 @@ Costs (n = 3 + 2N):
   Joseph form ``(I-KH) P (I-KH)^T + K R K^T`` exactly (a test checks it against the dense Joseph form) and keeps
   P symmetric (bit-for-bit in the tests: entry (i,j) and (j,i) are the same products). It is O(n^2): one BLAS
   ``dgemm`` pass over P in place; never a dense n x n product;
+* a step with many observations (:func:`ekf_update_range_bearing_batches`) applies joint updates of a few dozen
+  in turn, keeping only P's upper triangle current in between: each downdate is one ``dsyrk`` (half the flops of
+  the ``dgemm``), the triangle is mirrored once at the end; the same maths as chaining the single joint update;
 * augmentation (:func:`augment_state`) and removal copy P once: O(n^2).
 
 Numerical guard (documented rule, see :class:`CovarianceError`): before an update the rows that the update reads

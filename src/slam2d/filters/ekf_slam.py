@@ -123,7 +123,7 @@ class EKFConfig:
     batch_from: int = 32
     """a step with at least this many matched observations applies them in joint updates of up to
     ``UPDATE_BATCH`` (in observation order, each linearised at the mean the previous one left;
-    :func:`ekf_update_range_bearing_batch`): a few BLAS calls per batch instead of one pass over P per observation,
+    :func:`ekf_update_range_bearing_batches`): a few BLAS calls per batch instead of one pass over P per observation,
     many times faster with hundreds of landmarks in view. Smaller steps get one update per observation (0: always
     batch; a huge number: never)."""
     snapshot_full_cov: bool = False
