@@ -283,8 +283,9 @@ class LidarSLAM(EstimatorLifecycle):
         events: list[LoopEvent] = []
         moved = False
         if self._full_pending:
-            self.graph.solve_full(1)
-            self._full_pending -= 1
+            summary = self.graph.solve_full(1)
+            # converged (the step changed the cost too little): the rest of the owed iterations are not needed
+            self._full_pending = 0 if summary.termination != "max iterations" else self._full_pending - 1
             moved = True
         for _ in range(verifications):
             if not self._queue:
