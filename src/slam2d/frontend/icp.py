@@ -133,6 +133,14 @@ class ICPTarget:
     tree: cKDTree
     normals: Array | None
 
+    def moved(self, delta: ArrayLike) -> ICPTarget:
+        """The same target moved rigidly by ``delta`` (3,) (points mapped, normals rotated, tree rebuilt): the
+        normals' neighbourhood fits are not redone, which is most of :func:`prepare_target`'s cost."""
+        d = np.asarray(delta, dtype=np.float64)
+        pts = se2.transform_points(d, self.points)
+        normals = None if self.normals is None else se2.transform_points(np.array([0.0, 0.0, d[2]]), self.normals)
+        return ICPTarget(pts, cKDTree(pts), normals)
+
 
 def prepare_target(target: ArrayLike, config: ICPConfig | None = None) -> ICPTarget:
     """Build the KD-tree (and normals for point-to-line) of ``target`` (M,2) once."""

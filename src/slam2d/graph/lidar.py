@@ -96,6 +96,8 @@ class LidarSLAM(EstimatorLifecycle):
         self._rel = [self._pose.copy()]
         self._target: ICPTarget | None = None
         self._target_version = -1
+        self._target_poses = np.zeros((0, 3))  # the keyframe poses the target was built (or moved) for
+        self._target_span = (0, 0)  # ... and which keyframes they are
         self._version = 0  # bumped whenever keyframe estimates change
         self._traj_cache: tuple[int, Array] | None = None
         self._new_loops: tuple[LoopEvent, ...] = ()
@@ -350,12 +352,24 @@ class LidarSLAM(EstimatorLifecycle):
         return out if frame is None else se2.inverse_transform_points(frame, out)
 
     def _local_target(self) -> ICPTarget:
-        key = (len(self._kf_step), self._version)
-        if self._target is None or self._target_version != hash(key):
-            n = len(self._kf_step)
-            self._target = prepare_target(self._world_points(n - self.config.local_map_keyframes, n),
-                                          self.config.icp)
-            self._target_version = hash(key)
+        key = hash((len(self._kf_step), self._version))
+        if self._target is not None and self._target_version == key:
+            return self._target
+        assert self.graph is not None
+        n = len(self._kf_step)
+        lo = max(n - self.config.local_map_keyframes, 0)
+        now = self.graph.poses[lo:n]
+        old = self._target_poses
+        if self._target is not None and len(old) == len(now) and self._target_span == (lo, n):
+            # the keyframes only moved (a graph solve): when they moved together, move the target with them
+            d = se2.compose(now, se2.inverse(old))
+            dev = se2.local(d[0], d)
+            if np.all(np.hypot(dev[:, 0], dev[:, 1]) < 1e-3) and np.all(np.abs(dev[:, 2]) < 2e-4):
+                self._target = self._target.moved(d[0])
+                self._target_poses, self._target_version = now.copy(), key
+                return self._target
+        self._target = prepare_target(self._world_points(lo, n), self.config.icp)
+        self._target_poses, self._target_span, self._target_version = now.copy(), (lo, n), key
         return self._target
 
     # ------------------------------------------------------------------ loops
