@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -111,3 +113,33 @@ def test_no_false_loops_on_warehouse_seed_2() -> None:
 
     _, rec = run_named("lidar", "warehouse", seed=2, overrides={"steps": 1200}, progress=False)
     assert rec["loops_false"] == 0
+
+
+def test_loop_work_is_bounded_per_scan_and_finalize_verifies_what_is_left() -> None:
+    """Candidates are queued at keyframes and verified at most ``loop_verify_per_scan`` per scan; a full queue
+    drops its oldest (counted); ``finalize`` verifies whatever still waits."""
+    log = simulate("room", seed=3, steps=300)
+    cfg = LidarSLAMConfig(loop_every=1, loop_candidates=4, loop_min_separation=10)
+    est = LidarSLAM(cfg)
+    calls: list[int] = []
+    verify = est._verify_candidate
+
+    def counted(*a: object) -> object:
+        calls[-1] += 1
+        return verify(*a)  # type: ignore[arg-type]
+
+    est._verify_candidate = counted  # type: ignore[method-assign]
+    est.reset(log.initial_pose, rng=np.random.default_rng(0))
+    waiting = 0
+    for i in range(1, log.num_steps + 1):
+        calls.append(0)
+        est.step(log.step(i))
+        waiting = max(waiting, len(est._queue))
+    assert max(calls) == 1 and sum(calls) > 20 and waiting > 1  # more candidates than one scan verifies
+    left = len(est._queue)
+    calls.append(0)
+    est.finalize()
+    assert len(est._queue) == 0 and calls[-1] == left
+    small = LidarSLAM(replace(cfg, loop_queue=2))
+    run(small, log, rng=np.random.default_rng(0), progress=False)
+    assert small.loops_dropped > 0
