@@ -94,8 +94,13 @@ class LidarSLAMConfig:
     loop_pair_theta_rad: float = 0.05
     """... and this (rad)."""
     loop_full_iterations: int = 5
-    """Gauss-Newton iterations on the whole keyframe graph after a step that added loops (0: the incremental
-    graph's local solve only)."""
+    """Gauss-Newton iterations on the whole keyframe graph after a loop entered, one per scan over the next scans
+    (0: the incremental graph's local solve only)."""
+    loop_verify_per_scan: int = 1
+    """loop candidates verified per scan: candidates are queued when a keyframe is made and verified over the
+    following scans, which bounds the work of every scan."""
+    loop_queue: int = 16
+    """at most this many candidates wait; when full, the oldest is dropped unverified (counted)."""
     graph: IncrementalConfig = field(default_factory=lambda: IncrementalConfig(
         window=30, loop_neighbourhood=3, iterations=3, full_every=200, loop_kernel=None))
     """incremental pose-graph settings (in keyframes)."""
@@ -123,7 +128,7 @@ class LidarSLAMConfig:
         if self.loop_confirmations not in (0, 1):
             raise ValueError(f"LidarSLAMConfig.loop_confirmations must be 0 or 1 (got {self.loop_confirmations})")
         for n in ("local_map_keyframes", "loop_every", "loop_candidates", "loop_min_separation",
-                  "loop_pair_keyframes"):
+                  "loop_pair_keyframes", "loop_verify_per_scan", "loop_queue"):
             if getattr(self, n) < 1:
                 raise ValueError(f"LidarSLAMConfig.{n} must be >= 1 (got {getattr(self, n)})")
         if self.layers is not None and self.loop_closure:
