@@ -1,9 +1,16 @@
-"""EKF-SLAM cost per observation update versus the number of landmarks N, against a naive dense formulation.
+"""EKF-SLAM cost per observation update versus the number of landmarks N, against a naive dense formulation; and
+the cost of a whole filter step with every landmark in view (``--steps``).
 
 Run: ``OPENBLAS_NUM_THREADS=1 python benchmarks/ekf_slam.py`` (the script sets the variable itself when it is
 unset, before numpy loads). Prints a table (median ms per update), the fitted log-log slopes, and the targets:
 slope <= 2.1 and <= 10 ms at N=1000 for the library's O(N^2) update. The naive version multiplies full-width
 (2 x n) Jacobians through P and forms the dense Joseph product (I-KH) P (I-KH)^T: O(n^3).
+
+``--steps``: the grid world with N = 100/250/500 landmarks and a 100 m sensor (all of them in view, as on the
+simulator page's 500-landmark test), the EKF with the log's ids; CPU ms per ``step`` (predict, association, the
+joint updates of ``UPDATE_BATCH`` observations, bookkeeping) after every landmark is mapped. To compare with
+another version of the library, run the same script with that version's ``src`` first on PYTHONPATH, e.g. main:
+``git archive main src | tar -x -C /tmp/main && PYTHONPATH=/tmp/main/src python benchmarks/ekf_slam.py --steps``.
 """
 
 from __future__ import annotations
@@ -69,7 +76,39 @@ def time_it(fn, reps: int) -> tuple[float, float]:
     return float(np.median(cpu)), float(np.median(wall))
 
 
+STEP_SIZES = (100, 250, 500)
+
+
+def step_costs(steps: int = 14, warm: int = 4) -> int:
+    """CPU ms per EKF step with all N landmarks observed at every step (see module doc)."""
+    import slam2d
+    from slam2d.lab.registry import make_estimator
+
+    print(f"slam2d from {os.path.dirname(slam2d.__file__)}")
+    print(f"{'N':>6} {'obs/step':>9} {'state dim':>9} {'CPU ms/step':>12} {'wall ms/step':>13} {'steps/s (CPU)':>14}")
+    for n_lm in STEP_SIZES:
+        log = slam2d.simulate("grid", seed=0, landmarks=n_lm, steps=warm + steps,
+                              **{"sensor.max_range_m": 100.0})
+        est = make_estimator("ekf", None, log.metadata)
+        est.reset(log.initial_pose, rng=np.random.default_rng(0))
+        cpu, wall, seen = [], [], []
+        for i, step in enumerate(log):
+            c0, w0 = time.process_time(), time.perf_counter()
+            est.step(step)
+            if i >= warm:
+                cpu.append(time.process_time() - c0)
+                wall.append(time.perf_counter() - w0)
+                seen.append(len(step.observations))
+        e = est.estimate()
+        c = 1e3 * float(np.median(cpu))
+        print(f"{n_lm:6d} {int(np.median(seen)):9d} {e.state_dim:9d} {c:12.1f} {1e3 * float(np.median(wall)):13.1f} "
+              f"{1e3 / c:14.1f}")
+    return 0
+
+
 def main() -> int:
+    if "--steps" in sys.argv[1:]:
+        return step_costs()
     rng = np.random.default_rng(0)
     noise = MotionNoise()
     print(f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}  numpy {np.__version__}")

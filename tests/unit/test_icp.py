@@ -133,3 +133,18 @@ def test_bad_input_is_a_clean_failure() -> None:
         ICPConfig(trim_fraction=0.0)
     with pytest.raises(ValueError, match="method"):
         ICPConfig(method="plane")  # type: ignore[arg-type]
+
+
+def test_a_moved_target_equals_the_target_of_the_moved_points(rng: np.random.Generator) -> None:
+    from slam2d.frontend.icp import prepare_target
+
+    t = np.linspace(0, 3, 60)
+    pts = np.vstack([np.stack([t, 0.2 * t**2], -1), np.stack([0 * t + 3, t], -1)]) + rng.normal(0, 0.003, (120, 2))
+    d = np.array([0.4, -1.1, 0.7])
+    a = prepare_target(pts).moved(d)
+    b = prepare_target(se2.transform_points(d, pts))
+    assert a.normals is not None and b.normals is not None
+    assert np.allclose(a.points, b.points)
+    assert np.allclose(np.abs(np.einsum("ij,ij->i", a.normals, b.normals)), 1.0, atol=1e-9)
+    q = rng.uniform(-1, 4, (30, 2))
+    assert np.array_equal(a.tree.query(q)[1], b.tree.query(q)[1])

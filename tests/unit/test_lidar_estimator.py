@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -66,6 +68,31 @@ def test_correlative_match_finds_an_offset_exactly_and_flags_a_repeated_pattern(
     assert m.ambiguity > 0.95
 
 
+def test_correlative_scores_equal_a_point_by_point_lookup(rng: np.random.Generator) -> None:
+    """The gathered scores (one cell per point and angle, offsets as index shifts, a zero border) against a plain
+    loop over poses and points, with points far outside the grid and offsets that push some of them out."""
+    from slam2d.frontend.correlative import _likelihood, _scores
+
+    cfg = CorrelativeConfig()
+    tgt = rng.uniform(-2, 2, (60, 2))
+    lo, shape = np.array([-2.5, -2.4]), (95, 100)
+    off = np.arange(-6, 7, 3)
+    grids = _likelihood(tgt, lo, shape, cfg, pad=2 * 6 + 1)
+    src = np.vstack([rng.uniform(-3, 3, (40, 2)), [[50.0, 0.0], [0.0, -40.0]]])
+    th, origin, res = np.array([-0.1, 0.0, 0.27]), np.array([0.013, -0.031]), cfg.resolution_m
+    fine = grids.fine.reshape(shape[0] + 26, shape[1] + 26)[13:-13, 13:-13]
+    got = _scores(grids.fine, grids, src, th, origin, off, off[::-1], res)
+    for a, t in enumerate(th):
+        for iy, oy in enumerate(off[::-1]):
+            for ix, ox in enumerate(off):
+                p = se2.transform_points(np.array([*origin, t]), src) - lo
+                i = np.floor(p[:, 1] / res).astype(int) + oy
+                j = np.floor(p[:, 0] / res).astype(int) + ox
+                ok = (i >= 0) & (i < shape[0]) & (j >= 0) & (j < shape[1])
+                want = fine[i[ok], j[ok]].sum() / len(src)
+                assert got[a, iy, ix] == pytest.approx(want, abs=1e-6)
+
+
 @pytest.mark.slow
 def test_no_false_loops_among_identical_warehouse_aisles() -> None:
     """A CI-sized version of the benchmark's 10-seed count: a drive long enough to come back through the aisles
@@ -86,3 +113,33 @@ def test_no_false_loops_on_warehouse_seed_2() -> None:
 
     _, rec = run_named("lidar", "warehouse", seed=2, overrides={"steps": 1200}, progress=False)
     assert rec["loops_false"] == 0
+
+
+def test_loop_work_is_bounded_per_scan_and_finalize_verifies_what_is_left() -> None:
+    """Candidates are queued at keyframes and verified at most ``loop_verify_per_scan`` per scan; a full queue
+    drops its oldest (counted); ``finalize`` verifies whatever still waits."""
+    log = simulate("room", seed=3, steps=300)
+    cfg = LidarSLAMConfig(loop_every=1, loop_candidates=4, loop_min_separation=10)
+    est = LidarSLAM(cfg)
+    calls: list[int] = []
+    verify = est._verify_candidate
+
+    def counted(*a: object) -> object:
+        calls[-1] += 1
+        return verify(*a)  # type: ignore[arg-type]
+
+    est._verify_candidate = counted  # type: ignore[method-assign]
+    est.reset(log.initial_pose, rng=np.random.default_rng(0))
+    waiting = 0
+    for i in range(1, log.num_steps + 1):
+        calls.append(0)
+        est.step(log.step(i))
+        waiting = max(waiting, len(est._queue))
+    assert max(calls) == 1 and sum(calls) > 20 and waiting > 1  # more candidates than one scan verifies
+    left = len(est._queue)
+    calls.append(0)
+    est.finalize()
+    assert len(est._queue) == 0 and calls[-1] == left
+    small = LidarSLAM(replace(cfg, loop_queue=2))
+    run(small, log, rng=np.random.default_rng(0), progress=False)
+    assert small.loops_dropped > 0

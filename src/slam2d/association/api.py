@@ -7,29 +7,43 @@ import time
 import numpy as np
 
 from slam2d.association.base import CLUTTER, AssociationConfig, AssociationResult, Candidates, associate_known
-from slam2d.association.gating import Problem, build_problem, finalize, joint_nis
+from slam2d.association.gating import (
+    build_problem,
+    finalize,
+    gate_thresholds,
+    mahalanobis_matrix,
+    pairs_nis,
+    validate,
+)
 from slam2d.association.individual import individual_compatibility
 from slam2d.association.jcbb import jcbb
 from slam2d.association.nn import nearest_neighbour
 from slam2d.association.ransac import ransac
+from slam2d.geometry.angles import angle_diff
 from slam2d.log import Observations
 
 
-def _known(problem: Problem, observations: Observations, candidates: Candidates,
-           outlier_gate: bool) -> AssociationResult:
-    base = associate_known(observations, candidates)
-    assignment = base.assignment.copy()
+def _known(observations: Observations, candidates: Candidates, config: AssociationConfig) -> AssociationResult:
+    """The source's ids, with d2 and the joint NIS of the matched pairs only (never the K x L problem: with
+    hundreds of landmarks in view that was most of the association's time)."""
+    s, sj = validate(observations, candidates)
+    assignment = associate_known(observations, candidates).assignment.copy()
     obs = np.flatnonzero(assignment >= 0).astype(np.int64)
-    index = {int(c): k for k, c in enumerate(problem.ids)}
-    cand = np.array([index[int(c)] for c in assignment[obs]], dtype=np.int64)
+    ids = np.asarray(candidates.ids, dtype=np.int64)
+    order = np.argsort(ids, kind="stable")
+    cand = order[np.searchsorted(ids, assignment[obs], sorter=order)].astype(np.int64)
+    z = observations.z.reshape(-1, 2).astype(np.float64)[obs]
+    z_pred = np.asarray(candidates.z_pred, dtype=np.float64).reshape(-1, 2)[cand]
+    nu = np.stack([z[:, 0] - z_pred[:, 0], angle_diff(z[:, 1], z_pred[:, 1])], axis=-1)  # as gating.innovations
+    pair_d2 = mahalanobis_matrix(nu[None], s[cand])[0] if obs.size else np.zeros(0)
     d2 = np.full(len(assignment), np.nan)
-    d2[obs] = problem.d2[obs, cand]
-    if outlier_gate and obs.size:
+    d2[obs] = pair_d2
+    if config.known_outlier_gate and obs.size:
         # an id the source reports can still be wrong (a misread barcode): outside the wide gate it is clutter
-        bad = d2[obs] > problem.new_gate
+        bad = pair_d2 > gate_thresholds(config)[1]
         assignment[obs[bad]] = CLUTTER
-        obs, cand = obs[~bad], cand[~bad]
-    return AssociationResult(assignment, d2, joint_nis(problem, obs, cand))
+        cand, nu, pair_d2 = cand[~bad], nu[~bad], pair_d2[~bad]
+    return AssociationResult(assignment, d2, pairs_nis(nu, pair_d2, cand, sj, ids))
 
 
 def associate(observations: Observations, candidates: Candidates, config: AssociationConfig, *,
@@ -46,9 +60,9 @@ def associate(observations: Observations, candidates: Candidates, config: Associ
     if config.method == "auto":
         raise ValueError("AssociationConfig.method 'auto' must be resolved first (resolve_method: known ids or "
                          "not) by the back end or the runner")
-    problem = build_problem(observations, candidates, config)
     if config.method == "known":
-        return _known(problem, observations, candidates, config.known_outlier_gate)
+        return _known(observations, candidates, config)
+    problem = build_problem(observations, candidates, config)
     if problem.num_obs == 0 or problem.num_candidates == 0:
         return finalize(problem, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64))
     if config.method == "nn":

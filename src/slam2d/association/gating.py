@@ -275,18 +275,26 @@ def joint_nis(problem: Problem, obs: IntArray, cand: IntArray) -> float:
     repeats; 0 for no pairs). Raises ValueError when that sub-matrix of S_joint is not positive definite."""
     if len(obs) == 0:
         return 0.0
+    return pairs_nis(problem.nu[obs, cand], problem.d2[obs, cand], cand, problem.S_joint, problem.ids)
+
+
+def pairs_nis(nu: Array, d2: Array, cand: IntArray, S_joint: Array | None, ids: IntArray) -> float:
+    """:func:`joint_nis` from the pairs' own innovations ``nu`` (n,2) and distances ``d2`` (n,), for callers that
+    never build the whole K x L problem. ``S_joint`` (2L,2L) symmetrised or None (block diagonal)."""
+    if len(cand) == 0:
+        return 0.0
     if len(np.unique(cand)) != len(cand):
         return float("nan")
-    if problem.S_joint is None:  # block diagonal: the sum of the pairs' own NIS (no dense 2K x 2K factorisation)
-        return float(np.sum(problem.d2[obs, cand]))
-    nu = problem.nu[obs, cand].reshape(-1)
-    c = problem.joint_block(cand, cand)
+    if S_joint is None:  # block diagonal: the sum of the pairs' own NIS (no dense 2K x 2K factorisation)
+        return float(np.sum(d2))
+    n_c, two = S_joint.shape[0] // 2, np.arange(2)
+    c = S_joint.reshape(n_c, 2, n_c, 2)[np.ix_(cand, two, cand, two)].reshape(2 * len(cand), 2 * len(cand))
     try:
         chol = np.linalg.cholesky(c)
     except np.linalg.LinAlgError:
         raise ValueError(f"Candidates.S_joint is not positive definite on candidates "
-                         f"{problem.ids[cand].tolist()}") from None
-    y = np.linalg.solve(chol, nu)
+                         f"{ids[cand].tolist()}") from None
+    y = np.linalg.solve(chol, nu.reshape(-1))
     return float(y @ y)
 
 

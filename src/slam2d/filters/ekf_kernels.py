@@ -12,6 +12,9 @@ Costs (n = 3 + 2N):
   Joseph form ``(I-KH) P (I-KH)^T + K R K^T`` exactly (a test checks it against the dense Joseph form) and keeps
   P symmetric (bit-for-bit in the tests: entry (i,j) and (j,i) are the same products). It is O(n^2): one BLAS
   ``dgemm`` pass over P in place; never a dense n x n product;
+* a step with many observations (:func:`ekf_update_range_bearing_batches`) applies joint updates of a few dozen
+  in turn, keeping only P's upper triangle current in between: each downdate is one ``dsyrk`` (half the flops of
+  the ``dgemm``), the triangle is mirrored once at the end; the same maths as chaining the single joint update;
 * augmentation (:func:`augment_state`) and removal copy P once: O(n^2).
 
 Numerical guard (documented rule, see :class:`CovarianceError`): before an update the rows that the update reads
@@ -27,7 +30,7 @@ import math
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.linalg import blas, solve_triangular
+from scipy.linalg import blas, lapack, solve_triangular
 
 from slam2d.association import AssociationConfig, AssociationResult, Candidates, associate
 from slam2d.association.predict import innovation_covariance, joint_innovation_covariance
@@ -57,9 +60,11 @@ class CovarianceError(ValueError):
     (pre-update check), so a caller that repairs P knows whether to retry.
     """
 
-    def __init__(self, message: str, *, applied: bool = False) -> None:
+    def __init__(self, message: str, *, applied: bool = False, done: int = 0) -> None:
         super().__init__(message)
         self.applied = applied
+        self.done = done
+        """observations applied before the failing update (set by :func:`ekf_update_range_bearing_batches`)."""
 
 
 # ---------------------------------------------------------------------------------------------------- validation
@@ -294,6 +299,107 @@ def ekf_update_range_bearing_batch(mu: Array, P: Array, js: ArrayLike, z: ArrayL
         if not (np.all(np.isfinite(d)) and float(np.min(d)) >= 0.0):
             i = int(np.argmin(np.where(np.isfinite(d), d, -np.inf)))
             raise CovarianceError(f"update left P[{i},{i}] = {d[i]!r} (must be finite and >= 0)", applied=True)
+    return mu, P
+
+
+def _mirror_upper(P: Array, block: int = 64) -> None:
+    """Copy the upper triangle of the C-ordered P onto its lower one, in place (square blocks: cache-friendly)."""
+    n = P.shape[0]
+    for i in range(0, n, block):
+        P[i:i + block, :i] = P[:i, i:i + block].T
+        d = P[i:i + block, i:i + block]
+        low = np.tril_indices(d.shape[0], -1)
+        d[low] = d.T[low]
+
+
+def _symmetric_rows(P: Array, idx: IntArray, cols: IntArray) -> Array:
+    """Full rows ``idx`` of a symmetric P of which only the upper triangle is current: ``P[r, c]`` for ``c >= r``,
+    ``P[c, r]`` (the column) for ``c < r``. Shapes: (n,n),(r,),(n,) -> (r,n)."""
+    return np.where(cols[None, :] >= idx[:, None], P[idx, :], P[:, idx].T)
+
+
+def _joint_update_upper(mu: Array, P: Array, js: IntArray, z: Array, R: Array, check: bool) -> None:
+    """:func:`ekf_update_range_bearing_batch` in place on a C-ordered P whose upper triangle only is current (and
+    stays so): the rows the update reads come from :func:`_symmetric_rows`, the downdate ``P -= C^T C`` is one
+    ``dsyrk`` on the upper triangle (half the flops of the full ``dgemm``)."""
+    n, k = mu.shape[0], js.size
+    lm_rows = POSE_DIM + 2 * js[:, None] + np.arange(2)  # (K,2)
+    idx = np.concatenate([np.arange(POSE_DIM), lm_rows.reshape(-1)])
+    rows = _symmetric_rows(P, idx, np.arange(n))
+    if check and not math.isfinite(float(np.sum(rows))):
+        raise CovarianceError("covariance rows of the observed landmarks are not finite")
+    lms = mu[lm_rows]
+    pose = mu[:POSE_DIM]
+    z_pred = range_bearing(pose, lms).reshape(k, 2)
+    hp, hl = range_bearing_jacobians(np.broadcast_to(pose, (k, POSE_DIM)), lms)  # (K,2,3), (K,2,2)
+    nu = np.column_stack([z[:, 0] - z_pred[:, 0], wrap_angle(z[:, 1] - z_pred[:, 1])]).reshape(-1)
+    hp2 = hp.reshape(2 * k, POSE_DIM)
+    B = hp2 @ rows[:POSE_DIM] + np.matmul(hl, rows[POSE_DIM:].reshape(k, 2, n)).reshape(2 * k, n)  # H P, (m, n)
+    S = B[:, :POSE_DIM] @ hp2.T + np.einsum("mkb,kab->mka", B[:, lm_rows], hl).reshape(2 * k, 2 * k)
+    S.reshape(k, 2, k, 2)[np.arange(k), :, np.arange(k), :] += R
+    L, info = lapack.dpotrf(0.5 * (S + S.T), lower=1, clean=1, overwrite_a=1)
+    if info != 0:
+        raise CovarianceError("joint innovation covariance S is not positive definite")
+    l_inv, info = lapack.dtrtri(L, lower=1, overwrite_c=1)
+    if info != 0:  # pragma: no cover - a Cholesky factor has a positive diagonal
+        raise CovarianceError("joint innovation covariance S is singular")
+    # C^T = B^T L^-T from BLAS on the Fortran view B.T (no copies): C = L^-1 B as in the single batch
+    ct = blas.dtrmm(1.0, l_inv, B.T, side=1, lower=1, trans_a=1, overwrite_b=1)
+    mu += ct @ (l_inv @ nu)
+    mu[2] = wrap_angle_scalar(mu[2])
+    # P.T is P's memory in Fortran order; its lower triangle is P's upper one
+    out = blas.dsyrk(-1.0, ct, 1.0, P.T, trans=0, lower=1, overwrite_c=1)
+    if not np.shares_memory(out, P):  # pragma: no cover - BLAS wrapper declined to work in place
+        P[...] = out.T
+    if check:
+        d = np.diagonal(P)
+        if not (np.all(np.isfinite(d)) and float(np.min(d)) >= 0.0):
+            i = int(np.argmin(np.where(np.isfinite(d), d, -np.inf)))
+            raise CovarianceError(f"update left P[{i},{i}] = {d[i]!r} (must be finite and >= 0)", applied=True)
+
+
+def ekf_update_range_bearing_batches(mu: Array, P: Array, js: ArrayLike, z: ArrayLike, R: Array, *,
+                                     batch: int, check: bool = True) -> tuple[Array, Array]:
+    """Joint updates of ``batch`` observations at a time, in order, in place: exactly the maths of calling
+    :func:`ekf_update_range_bearing_batch` on ``js[0:batch]``, ``js[batch:2 batch]``, ... (each chunk linearised
+    at the mean the previous one left), in about half the time for big P.
+
+    Between chunks only P's upper triangle is kept current: each downdate is one ``dsyrk`` (half the flops of a
+    ``dgemm``), the rows a chunk reads are gathered from the triangle and its columns, and the lower triangle is
+    mirrored once at the end (also before a :class:`CovarianceError` leaves, whose ``done`` is then the number of
+    observations applied before the failing chunk). ``mu`` and P must be float64, P C-contiguous (else the
+    chunks go through :func:`ekf_update_range_bearing_batch`). Shapes: (n,),(n,n),(K,),(K,2),(2,2) -> (n,),(n,n).
+    """
+    mu, P = np.asarray(mu), np.asarray(P)
+    n = _check_state(mu, P)
+    js = np.asarray(js, dtype=np.int64).reshape(-1)
+    z = np.asarray(z, dtype=np.float64).reshape(-1, 2)
+    if z.shape[0] != js.size:
+        raise ValueError(f"need one observation per landmark index (got {z.shape[0]} observations, {js.size} indices)")
+    if batch < 1:
+        raise ValueError(f"batch must be >= 1 (got {batch})")
+    if js.size and (js.min() < 0 or js.max() >= (n - POSE_DIM) // 2):
+        raise IndexError(f"landmark index out of range 0..{(n - POSE_DIM) // 2 - 1}: {js.tolist()}")
+    check_observations(z[:, 0], z[:, 1])
+    if mu.dtype != np.float64 or P.dtype != np.float64 or not P.flags.c_contiguous or not P.flags.writeable \
+            or not mu.flags.writeable:
+        for c in range(0, js.size, batch):
+            try:
+                mu, P = ekf_update_range_bearing_batch(mu, P, js[c:c + batch], z[c:c + batch], R, inplace=True,
+                                                       check=check)
+            except CovarianceError as e:
+                e.done = c
+                raise
+        return mu, P
+    try:
+        for c in range(0, js.size, batch):
+            try:
+                _joint_update_upper(mu, P, js[c:c + batch], z[c:c + batch], R, check)
+            except CovarianceError as e:
+                e.done = c
+                raise
+    finally:
+        _mirror_upper(P)
     return mu, P
 
 

@@ -38,6 +38,7 @@ from slam2d.filters.ekf_kernels import (
     ekf_update_position,
     ekf_update_range_bearing,
     ekf_update_range_bearing_batch,
+    ekf_update_range_bearing_batches,
     odometry_covariance_scalar,
     odometry_scalar,
     predict_landmarks,
@@ -68,6 +69,7 @@ __all__ = [
     "ekf_update_position",
     "ekf_update_range_bearing",
     "ekf_update_range_bearing_batch",
+    "ekf_update_range_bearing_batches",
     "odometry_covariance_scalar",
     "odometry_scalar",
     "predict_landmarks",
@@ -121,7 +123,7 @@ class EKFConfig:
     batch_from: int = 32
     """a step with at least this many matched observations applies them in joint updates of up to
     ``UPDATE_BATCH`` (in observation order, each linearised at the mean the previous one left;
-    :func:`ekf_update_range_bearing_batch`): a few BLAS calls per batch instead of one pass over P per observation,
+    :func:`ekf_update_range_bearing_batches`): a few BLAS calls per batch instead of one pass over P per observation,
     many times faster with hundreds of landmarks in view. Smaller steps get one update per observation (0: always
     batch; a huge number: never)."""
     snapshot_full_cov: bool = False
@@ -251,6 +253,27 @@ class EKFSLAM(EstimatorLifecycle):
             if not e.applied:
                 self._mu, self._P = update()
 
+    def _update_batches(self, js: IntArray, z: Array) -> None:
+        """Joint updates of ``UPDATE_BATCH`` observations in order (:func:`ekf_update_range_bearing_batches`), each
+        under the covariance guard exactly as :meth:`_guarded` runs one: repair, retry a batch not yet applied once,
+        then go on with the next batch."""
+        start = 0
+        while start < js.size:
+            try:
+                self._mu, self._P = ekf_update_range_bearing_batches(self._mu, self._P, js[start:], z[start:], self._R,
+                                                                     batch=UPDATE_BATCH)
+                return
+            except CovarianceError as e:
+                if self.config.covariance_guard == "raise":
+                    raise
+                self._P = repair_covariance(self._P)
+                self._repairs += 1
+                failed = start + e.done
+                start = failed + UPDATE_BATCH
+                if not e.applied:
+                    self._mu, self._P = ekf_update_range_bearing_batch(self._mu, self._P, js[failed:start],
+                                                                       z[failed:start], self._R, inplace=True)
+
     def _clean(self, step: Step) -> tuple[Observations, NDArray[np.bool_] | None]:
         """The step's valid observations, and the mask of kept ones (None when all are valid)."""
         obs = step.observations
@@ -307,10 +330,7 @@ class EKFSLAM(EstimatorLifecycle):
         used = np.flatnonzero(assign >= 0)
         sighted = np.array([pos[int(a)] for a in assign[used]], dtype=np.int64)
         if used.size >= max(self.config.batch_from, 2):
-            for c in range(0, used.size, UPDATE_BATCH):
-                sl = slice(c, c + UPDATE_BATCH)
-                self._guarded(lambda sl=sl: ekf_update_range_bearing_batch(self._mu, self._P, sighted[sl],
-                                                                           z[used[sl]], self._R, inplace=True))
+            self._update_batches(sighted, z[used])
         else:
             for o, j in zip(used, sighted, strict=True):  # one O(N^2) update per observation
                 self._guarded(lambda j=j, o=o: ekf_update_range_bearing(self._mu, self._P, j, z[o], self._R,

@@ -72,7 +72,19 @@ class CorrelativeMatch:
     evaluated: int
 
 
-def _likelihood(points: Array, lo: Array, shape: tuple[int, int], cfg: CorrelativeConfig) -> tuple[Array, Array]:
+@dataclass(frozen=True)
+class _Grids:
+    """The fine and coarse likelihood grids, flattened with a zero border of ``pad`` cells on every side, so that a
+    point moved by any offset of the search window indexes a zero cell instead of needing a bounds check."""
+
+    fine: NDArray[np.float32]
+    coarse: NDArray[np.float32]
+    lo: Array
+    shape: tuple[int, int]
+    pad: int
+
+
+def _likelihood(points: Array, lo: Array, shape: tuple[int, int], cfg: CorrelativeConfig, pad: int) -> _Grids:
     res = cfg.resolution_m
     occ = np.ones(shape, dtype=bool)
     ij = np.floor((points - lo) / res).astype(np.int64)
@@ -83,25 +95,35 @@ def _likelihood(points: Array, lo: Array, shape: tuple[int, int], cfg: Correlati
     c = cfg.coarse_cells
     # max over the block [i, i+c) x [j, j+c): a maximum filter shifted so that the block starts at the cell
     coarse = ndimage.maximum_filter(fine, size=c, origin=-(c // 2), mode="constant", cval=0.0)
-    return fine, coarse
+    return _Grids(np.pad(fine.astype(np.float32), pad).ravel(), np.pad(coarse.astype(np.float32), pad).ravel(),
+                  lo, shape, pad)
 
 
-def _scores(grid: Array, pts: Array, thetas: Array, shifts_x: Array, shifts_y: Array, lo: Array,
-            res: float) -> Array:
-    """Mean grid value of ``pts`` rotated by each theta and moved by each (shift_y, shift_x) (metres).
+def _scores(grid: NDArray[np.float32], g: _Grids, pts: Array, thetas: Array, origin: Array, off_x: NDArray[np.int64],
+            off_y: NDArray[np.int64], res: float) -> Array:
+    """Mean grid value of ``pts`` rotated by each theta and moved by ``origin`` (m) plus each (off_y, off_x) cells.
 
-    Shapes: pts (N,2), thetas (A,), shifts (X,), (Y,) -> (A, Y, X).
+    Shapes: pts (N,2), thetas (A,), origin (2,), offsets (X,), (Y,) -> (A, Y, X). Offsets are whole cells, so a
+    point's cell is found once per angle and every offset is an index shift (one gather of A*N*Y*X values).
     """
+    ny, nx = g.shape
+    p = g.pad
+    width = nx + 2 * p
     c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
-    x = c * pts[None, :, 0] - s * pts[None, :, 1]  # (A,N)
-    y = s * pts[None, :, 0] + c * pts[None, :, 1]
-    ix = np.floor((x[:, :, None] + shifts_x[None, None, :] - lo[0]) / res).astype(np.int64)  # (A,N,X)
-    iy = np.floor((y[:, :, None] + shifts_y[None, None, :] - lo[1]) / res).astype(np.int64)  # (A,N,Y)
-    ny, nx = grid.shape
-    okx, oky = (ix >= 0) & (ix < nx), (iy >= 0) & (iy < ny)
-    ix, iy = np.clip(ix, 0, nx - 1), np.clip(iy, 0, ny - 1)
-    vals = grid[iy[:, :, :, None], ix[:, :, None, :]] * (oky[:, :, :, None] & okx[:, :, None, :])  # (A,N,Y,X)
-    return np.asarray(vals.mean(axis=1), dtype=np.float64)
+    x = c * pts[None, :, 0] - s * pts[None, :, 1] + (origin[0] - g.lo[0])  # (A,N)
+    y = s * pts[None, :, 0] + c * pts[None, :, 1] + (origin[1] - g.lo[1])
+    bx = np.floor(x / res).astype(np.int64)
+    by = np.floor(y / res).astype(np.int64)
+    reach = max(int(np.abs(off_x).max()), int(np.abs(off_y).max()))
+    # a point whose every offset lands outside the grid reads the zero corner of the border
+    far = (bx < -reach) | (bx >= nx + reach) | (by < -reach) | (by >= ny + reach)
+    bx[far] = reach - p
+    by[far] = reach - p
+    base = ((by + p) * width + (bx + p)).astype(np.int32)  # (A,N)
+    off = (off_y[:, None] * width + off_x[None, :]).astype(np.int32).ravel()  # (Y*X,)
+    vals = np.take(grid, base[:, None, :] + off[None, :, None])  # (A, Y*X, N)
+    out = vals.sum(axis=-1, dtype=np.float64) / len(pts)
+    return np.asarray(out.reshape(len(thetas), len(off_y), len(off_x)), dtype=np.float64)
 
 
 def correlative_match(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
@@ -118,27 +140,28 @@ def correlative_match(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
     lo = tgt.min(axis=0) - margin
     hi = tgt.max(axis=0) + margin
     shape = (int(np.ceil((hi[1] - lo[1]) / res)) + 1, int(np.ceil((hi[0] - lo[0]) / res)) + 1)
-    fine, coarse = _likelihood(tgt, lo, shape, cfg)
-
     # coarse: angles around the guess, translations on a grid of coarse steps (multiples of c fine cells)
     na = int(np.ceil(cfg.window_theta_rad / cfg.coarse_theta_step_rad))
     th = g[2] + np.arange(-na, na + 1) * cfg.coarse_theta_step_rad
     step = c * res
     nk = int(np.ceil(cfg.window_xy_m / step))
-    kx = g[0] + np.arange(-nk, nk + 1) * step
-    ky = g[1] + np.arange(-nk, nk + 1) * step
-    sc = _scores(coarse, src, th, kx, ky, lo, res)  # (A,Y,X)
+    grids = _likelihood(tgt, lo, shape, cfg, pad=2 * (nk * c + c) + 1)
+    koff = np.arange(-nk, nk + 1) * c  # coarse offsets from the guess, in fine cells
+    kx = g[0] + koff * res
+    ky = g[1] + koff * res
+    sc = _scores(grids.coarse, grids, src, th, g[:2], koff, koff, res)  # (A,Y,X)
     order = np.argsort(sc, axis=None, kind="stable")[::-1]
     best_t, best_s = g.copy(), -1.0
     fa = int(np.ceil(0.5 * cfg.coarse_theta_step_rad / cfg.fine_theta_step_rad))
     dth = np.arange(-fa, fa + 1) * cfg.fine_theta_step_rad
-    fine_off = np.arange(c) * res
+    fine_cells = np.arange(c)
+    fine_off = fine_cells * res
     evaluated = sc.size
     for flat in order[: cfg.max_refined].tolist():
         a, iy, ix = np.unravel_index(flat, sc.shape)
         if sc[a, iy, ix] <= best_s:  # the bound: nothing in this block can beat the best fine score
             break
-        f = _scores(fine, src, th[a] + dth, kx[ix] + fine_off, ky[iy] + fine_off, lo, res)
+        f = _scores(grids.fine, grids, src, th[a] + dth, g[:2], koff[ix] + fine_cells, koff[iy] + fine_cells, res)
         evaluated += f.size
         b = np.unravel_index(int(np.argmax(f)), f.shape)
         if f[b] > best_s:

@@ -107,10 +107,15 @@ def kabsch_2d(p: ArrayLike, q: ArrayLike) -> Array:
     return np.array([t[0], t[1], float(wrap_angle(np.arctan2(r[1, 0], r[0, 0])))])
 
 
+def _rotated_derivative(theta: float, src: Array) -> Array:
+    """d(R p)/d theta = R' p for each source point: (N,2)."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.stack([-s * src[:, 0] - c * src[:, 1], c * src[:, 0] - s * src[:, 1]], axis=-1)
+
+
 def _jacobian_rows(theta: float, src: Array) -> tuple[Array, Array]:
     """d(R p + t)/d[x, y, theta] for each source point: (N,2,3)."""
-    c, s = np.cos(theta), np.sin(theta)
-    dr = np.stack([-s * src[:, 0] - c * src[:, 1], c * src[:, 0] - s * src[:, 1]], axis=-1)  # R' p
+    dr = _rotated_derivative(theta, src)
     n = len(src)
     j = np.zeros((n, 2, 3))
     j[:, 0, 0] = 1.0
@@ -127,6 +132,14 @@ class ICPTarget:
     points: Array
     tree: cKDTree
     normals: Array | None
+
+    def moved(self, delta: ArrayLike) -> ICPTarget:
+        """The same target moved rigidly by ``delta`` (3,) (points mapped, normals rotated, tree rebuilt): the
+        normals' neighbourhood fits are not redone, which is most of :func:`prepare_target`'s cost."""
+        d = np.asarray(delta, dtype=np.float64)
+        pts = se2.transform_points(d, self.points)
+        normals = None if self.normals is None else se2.transform_points(np.array([0.0, 0.0, d[2]]), self.normals)
+        return ICPTarget(pts, cKDTree(pts), normals)
 
 
 def prepare_target(target: ArrayLike, config: ICPConfig | None = None) -> ICPTarget:
@@ -185,7 +198,7 @@ def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | N
             step = np.abs(dt)
         else:
             n = normals[j]
-            _, dr = _jacobian_rows(float(t[2]), src[ok])
+            dr = _rotated_derivative(float(t[2]), src[ok])
             r = np.einsum("ni,ni->n", n, moved[ok] - tgt[j])
             jac = np.column_stack([n[:, 0], n[:, 1], np.einsum("ni,ni->n", n, dr)])
             # minimum-norm step: a degenerate direction (corridor axis) is left where the initial guess put it
@@ -194,7 +207,8 @@ def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | N
             step = np.abs(delta)
         # trimmed matching can flip between two correspondence sets forever (a limit cycle of ~1 mm): returning
         # to a transform of the last few iterations is convergence as well
-        if np.all(step < cfg.tolerance) or any(np.all(np.abs(se2.local(h, t)) < cfg.tolerance) for h in history):
+        if np.all(step < cfg.tolerance) or (
+                history and bool(np.any(np.all(np.abs(se2.local(np.asarray(history), t)) < cfg.tolerance, axis=1)))):
             converged = True
             break
         history = [*history[-3:], t]

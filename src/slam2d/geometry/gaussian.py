@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import numpy as np
@@ -36,6 +37,12 @@ def chi2_gate(probability: float, dof: int) -> float:
         raise ValueError(f"probability must be in (0, 1), got {probability}")
     if dof < 1:
         raise ValueError(f"dof must be >= 1, got {dof}")
+    return _chi2_quantile(float(probability), int(dof))
+
+
+@functools.lru_cache(maxsize=1024)
+def _chi2_quantile(probability: float, dof: int) -> float:
+    # scipy's chi2.ppf costs 0.5-5 ms a call and the same few quantiles are asked for at every step and frame
     from scipy import stats  # imported here: scipy.stats costs ~1 s, and most users of geometry never need it
 
     return float(stats.chi2.ppf(probability, dof))

@@ -10,16 +10,18 @@ Per step (one scan):
    keyframe, the scan becomes a keyframe: a node of the pose graph with a relative-pose edge from the previous
    keyframe (the tracking covariance rotated into that keyframe's frame, floored);
 3. loop closures (every ``loop_every`` keyframes): old keyframes within ``loop_radius_m`` of the new one (and at
-   least ``loop_min_separation`` keyframes older) are verified against a local map around each: correlative
-   matching over a window (:mod:`slam2d.frontend.correlative`; the score must be high and no competing alignment
-   nearly as good, which rejects parallel identical aisles and corridor axes), then ICP refinement (fitness and
-   residual gates) and a chi-square gate on the ICP covariance between the correlative and ICP results; a loop
-   in a self-similar place (ambiguity above ``loop_static_ambiguity``) is verified again on static structure only,
-   the points no other keyframe contradicts (:mod:`slam2d.graph.lidar_loops`): along an aisle a moving forklift
-   can be all that breaks the tie;
-4. the keyframe and its edges enter :class:`~slam2d.graph.incremental.IncrementalPoseGraph`: a local solve when
-   the step brought a loop, a whole-graph iteration every ``graph.full_every`` keyframes, the whole graph to
-   convergence in ``finalize`` (bounded work per scan; no full re-analysis when one node is added).
+   least ``loop_min_separation`` keyframes older) are queued as candidates; each scan verifies at most
+   ``loop_verify_per_scan`` of them against a local map around the old keyframe: correlative matching over a window
+   (:mod:`slam2d.frontend.correlative`; the score must be high and no competing alignment nearly as good, which
+   rejects parallel identical aisles and corridor axes), then ICP refinement (fitness and residual gates) and a
+   chi-square gate on the ICP covariance between the correlative and ICP results; a loop in a self-similar place
+   (ambiguity above ``loop_static_ambiguity``) is verified again on static structure only, the points no other
+   keyframe contradicts (:mod:`slam2d.graph.lidar_loops`: along an aisle a moving forklift can be all that breaks
+   the tie); a verified loop enters the graph once a second one agrees with it;
+4. the keyframe and its edges enter :class:`~slam2d.graph.incremental.IncrementalPoseGraph`: a local solve when a
+   loop enters, then ``loop_full_iterations`` whole-graph Gauss-Newton iterations, one per scan, a whole-graph
+   iteration every ``graph.full_every`` keyframes, the whole graph to convergence in ``finalize`` (bounded work per
+   scan: no full re-analysis when one node is added, no scan pays for a whole loop search).
 
 Floor markers (when steps carry readings): marker nodes in the graph, each reading a factor from its keyframe, a
 marker read again long after a loop-like solve (:mod:`slam2d.graph.lidar_markers`).
@@ -38,6 +40,8 @@ need the layers re-drawn from moved keyframes, which this mode does not do.
 """
 
 from __future__ import annotations
+
+from collections import deque
 
 import numpy as np
 from numpy.typing import NDArray
@@ -93,11 +97,16 @@ class LidarSLAM(EstimatorLifecycle):
         self._rel = [self._pose.copy()]
         self._target: ICPTarget | None = None
         self._target_version = -1
+        self._target_poses = np.zeros((0, 3))  # the keyframe poses the target was built (or moved) for
+        self._target_span = (0, 0)  # ... and which keyframes they are
         self._version = 0  # bumped whenever keyframe estimates change
         self._traj_cache: tuple[int, Array] | None = None
         self._new_loops: tuple[LoopEvent, ...] = ()
         # verified loops of the last ``loop_pair_keyframes`` keyframes: (old kf, new kf, T, information, accepted)
         self._pool: list[tuple[int, int, Array, Array, bool]] = []
+        self._queue: deque[tuple[int, int]] = deque()  # loop candidates (old kf, new kf) awaiting verification
+        self._full_pending = 0  # whole-graph Gauss-Newton iterations still owed after a loop
+        self.loops_dropped = 0  # candidates dropped unverified because the queue was full
         self.tracking_failures = 0
         self.loops_accepted = 0
         self.loops_rejected = 0
@@ -157,6 +166,7 @@ class LidarSLAM(EstimatorLifecycle):
         else:
             self._place(step.index, pose)
         self._cov = cov
+        self._loop_work(cfg.loop_verify_per_scan)
 
     # ------------------------------------------------------------------ lifelong mode
     def _step_lifelong(self, step: Step, guess: Array, pts: Array | None) -> None:
@@ -253,41 +263,70 @@ class LidarSLAM(EstimatorLifecycle):
             return
         prev = self.graph.poses[-1]
         floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
-        ei, ej, ez, einfo = [k - 1], [k], [z], [np.linalg.inv(_relative_cov(cov, float(prev[2])) + floor)]
-        events: list[LoopEvent] = []
-        late: list[tuple[int, int, Array, Array]] = []  # pending loops of older keyframes confirmed now
+        info = np.asarray(np.linalg.inv(_relative_cov(cov, float(prev[2])) + floor), dtype=np.float64)
+        before = self.graph.local_solves, self.graph.full_solves
+        self.graph.add_step(k, np.array([k - 1]), np.array([k]), np.asarray(z)[None], info[None])
+        if (self.graph.local_solves, self.graph.full_solves) != before:
+            self._version += 1
+        self._pose = self.graph.poses[-1].copy()
         if cfg.loop_closure and k % cfg.loop_every == 0:
-            for c, t_ck, info, ok in self._search_loops(k, pose, pts):
-                partners = [q for q in self._pool if self._consistent(q, (c, k, t_ck), pose)] if ok else []
-                accept = ok and (cfg.loop_confirmations == 0 or bool(partners))
-                events.append(LoopEvent(self._kf_step[c], index, accept, t_ck))
-                if accept:
-                    ei.append(c)
-                    ej.append(k)
-                    ez.append(t_ck)
-                    einfo.append(info)
-                for q in partners:
-                    if not q[4]:  # a pending loop confirmed by this one enters the graph too
-                        late.append(q[:4])
-                        events.append(LoopEvent(self._kf_step[q[0]], self._kf_step[q[1]], True, q[2]))
-                        self._pool[self._pool.index(q)] = (*q[:4], True)
-                if ok:
-                    self._pool.append((c, k, t_ck, info, accept))
-            self._pool = [q for q in self._pool if k - q[1] <= cfg.loop_pair_keyframes]
+            for c in self._loop_candidates(k, pose):
+                if len(self._queue) >= cfg.loop_queue:
+                    self._queue.popleft()  # the oldest waiting candidate: its keyframe has moved on the most
+                    self.loops_dropped += 1
+                self._queue.append((c, k))
+
+    # ------------------------------------------------------------------ loop work, bounded per scan
+    def _loop_work(self, verifications: int) -> None:
+        """One scan's share of the loop work: one whole-graph Gauss-Newton iteration if a loop still owes some,
+        and at most ``verifications`` queued candidates verified (each accepted loop is a local solve). Loop
+        candidates are found when a keyframe is made but verified over the next scans, so no scan pays for a
+        whole search (a 30 Hz lidar leaves 33 ms per scan)."""
+        assert self.graph is not None
+        events: list[LoopEvent] = []
+        moved = False
+        if self._full_pending:
+            summary = self.graph.solve_full(1)
+            # converged (the step changed the cost too little): the rest of the owed iterations are not needed
+            self._full_pending = 0 if summary.termination != "max iterations" else self._full_pending - 1
+            moved = True
+        for _ in range(verifications):
+            if not self._queue:
+                break
+            c, k = self._queue.popleft()
+            t_ck, info, ok = self._verify_candidate(c, k, self.graph.poses[k], self._kf_points[k])
+            if self._decide(c, k, t_ck, info, ok, events):
+                moved = True
+                self._full_pending = self.config.loop_full_iterations
         self.loops_accepted += sum(e.accepted for e in events)
         self.loops_rejected += sum(not e.accepted for e in events)
         self._new_loops = tuple(events)
-        before = self.graph.num_poses, self.graph.local_solves, self.graph.full_solves
-        self.graph.add_step(k, np.asarray(ei), np.asarray(ej), np.asarray(ez), np.asarray(einfo))
-        for c, kk, t_ck, info in late:
-            self.graph.add_loop(c, kk, t_ck, info)
-        if cfg.loop_full_iterations and (len(ei) > 1 or late):
-            # a loop moves everything between its ends: a local solve leaves a kink that the final optimisation
-            # may not undo (measured on aces: long relations 1.5 m with local solves only)
-            self.graph.solve_full(cfg.loop_full_iterations)
-        if (self.graph.local_solves, self.graph.full_solves) != before[1:]:
+        if moved:  # the current pose follows its keyframe
             self._version += 1
-        self._pose = self.graph.poses[-1].copy()
+            self._pose = se2.compose(self.graph.poses[self._owner[-1]], self._rel[-1])
+
+    def _decide(self, c: int, k: int, t_ck: Array, info: Array, ok: bool, events: list[LoopEvent]) -> bool:
+        """Accept a verified loop (c, k) once another verified loop agrees with it (``loop_confirmations``); a
+        waiting loop that this one confirms enters too. Appends the decisions to ``events``; True when loops
+        entered the graph."""
+        assert self.graph is not None
+        cfg = self.config
+        pose = self.graph.poses[k]
+        self._pool = [q for q in self._pool if k - q[1] <= cfg.loop_pair_keyframes]
+        partners = [q for q in self._pool if self._consistent(q, (c, k, t_ck), pose)] if ok else []
+        accept = ok and (cfg.loop_confirmations == 0 or bool(partners))
+        events.append(LoopEvent(self._kf_step[c], self._kf_step[k], accept, t_ck))
+        if accept:
+            self.graph.add_loop(c, k, t_ck, info)
+        for q in partners:
+            if not q[4]:  # a waiting loop confirmed by this one enters the graph too
+                self.graph.add_loop(q[0], q[1], q[2], q[3])
+                events.append(LoopEvent(self._kf_step[q[0]], self._kf_step[q[1]], True, q[2]))
+                self._pool[self._pool.index(q)] = (*q[:4], True)
+                accept = True
+        if ok:
+            self._pool.append((c, k, t_ck, info, accept))
+        return accept
 
     def _consistent(self, old: tuple[int, int, Array, Array, bool], new: tuple[int, int, Array], pose: Array) -> bool:
         """Do two verified loops (c1, k1, T_c1_k1) and (c2, k, T_c2_k) agree? Going from c1 to the new keyframe
@@ -314,17 +353,30 @@ class LidarSLAM(EstimatorLifecycle):
         return out if frame is None else se2.inverse_transform_points(frame, out)
 
     def _local_target(self) -> ICPTarget:
-        key = (len(self._kf_step), self._version)
-        if self._target is None or self._target_version != hash(key):
-            n = len(self._kf_step)
-            self._target = prepare_target(self._world_points(n - self.config.local_map_keyframes, n),
-                                          self.config.icp)
-            self._target_version = hash(key)
+        key = hash((len(self._kf_step), self._version))
+        if self._target is not None and self._target_version == key:
+            return self._target
+        assert self.graph is not None
+        n = len(self._kf_step)
+        lo = max(n - self.config.local_map_keyframes, 0)
+        now = self.graph.poses[lo:n]
+        old = self._target_poses
+        if self._target is not None and len(old) == len(now) and self._target_span == (lo, n):
+            # the keyframes only moved (a graph solve): when they moved together, move the target with them
+            d = se2.compose(now, se2.inverse(old))
+            dev = se2.local(d[0], d)
+            if np.all(np.hypot(dev[:, 0], dev[:, 1]) < 1e-3) and np.all(np.abs(dev[:, 2]) < 2e-4):
+                self._target = self._target.moved(d[0])
+                self._target_poses, self._target_version = now.copy(), key
+                return self._target
+        self._target = prepare_target(self._world_points(lo, n), self.config.icp)
+        self._target_poses, self._target_span, self._target_version = now.copy(), (lo, n), key
         return self._target
 
     # ------------------------------------------------------------------ loops
-    def _search_loops(self, k: int, pose: Array, pts: Array) -> list[tuple[int, Array, Array, bool]]:
-        """Verify the candidates of new keyframe ``k`` at ``pose``: (old keyframe, T_old_new, information, ok)."""
+    def _loop_candidates(self, k: int, pose: Array) -> list[int]:
+        """Old keyframes to verify against new keyframe ``k`` at ``pose``: within ``loop_radius_m``, at least
+        ``loop_min_separation`` keyframes older, nearest first, one per local map, at most ``loop_candidates``."""
         cfg = self.config
         assert self.graph is not None
         old = k - cfg.loop_min_separation
@@ -335,12 +387,16 @@ class LidarSLAM(EstimatorLifecycle):
         near = np.flatnonzero(dist < cfg.loop_radius_m)
         m = cfg.loop_map_keyframes
         cand: list[int] = []
-        for c in near[np.argsort(dist[near], kind="stable")].tolist():  # nearest first, one per local map
+        for c in near[np.argsort(dist[near], kind="stable")].tolist():
             if all(abs(c - o) > m for o in cand):
                 cand.append(c)
             if len(cand) == cfg.loop_candidates:
                 break
-        return [(c, *self._verify_candidate(c, k, pose, pts)) for c in cand]
+        return cand
+
+    def _search_loops(self, k: int, pose: Array, pts: Array) -> list[tuple[int, Array, Array, bool]]:
+        """Verify every candidate of keyframe ``k`` now: (old keyframe, T_old_new, information, ok)."""
+        return [(c, *self._verify_candidate(c, k, pose, pts)) for c in self._loop_candidates(k, pose)]
 
     def _verify_candidate(self, c: int, k: int, pose: Array, pts: Array) -> tuple[Array, Array, bool]:
         """Verify old keyframe ``c`` as a loop of new keyframe ``k`` at ``pose`` (scan points ``pts``):
@@ -419,6 +475,8 @@ class LidarSLAM(EstimatorLifecycle):
     def finalize(self) -> None:
         if self._lifecycle_finalize() and self.graph is not None and self.graph.num_poses > 1 \
                 and self.layers is None:
+            while self._queue:  # the candidates of the last keyframes are still owed a verification
+                self._loop_work(len(self._queue))
             self.graph.finalize()
             self._version += 1
             self._pose = self.trajectory()[-1].copy()

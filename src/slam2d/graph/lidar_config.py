@@ -63,9 +63,9 @@ class LidarSLAMConfig:
     normal within this distance (m; 0: no re-verification). A moving object is seen at a different place by each
     keyframe and drops out: the warehouse's false loops all slid along the middle aisle with a forklift."""
     loop_static_ambiguity: float = 0.8
-    """... where self-similar means a correlative ambiguity above this (0: every loop is re-verified). Re-verifying
-    every loop measured, with defaults chosen on aces and warehouse seeds 0-4: aces 0.0454 m, intel 0.0348 m (was
-    0.0230), fr079 0.0419 m."""
+    """... where self-similar means a correlative ambiguity above this (0: every loop is re-verified; the
+    warehouse's false loops had 0.81-0.88, its right ones 0.65-0.83). Re-verifying every loop cost intel 0.023 ->
+    0.035 m (measured before queued verification and the loop kernel)."""
     loop_static_normal_rad: float = 1.0
     """... and whose normal is within this angle of that point's: the end face of an object that slid along its
     own side is not confirmed by the side (rad)."""
@@ -110,11 +110,19 @@ class LidarSLAMConfig:
     loop_pair_theta_rad: float = 0.05
     """... and this (rad)."""
     loop_full_iterations: int = 5
-    """Gauss-Newton iterations on the whole keyframe graph after a step that added loops (0: the incremental
-    graph's local solve only)."""
+    """Gauss-Newton iterations on the whole keyframe graph after a loop entered, one per scan over the next scans
+    (0: the incremental graph's local solve only)."""
+    loop_verify_per_scan: int = 1
+    """loop candidates verified per scan: candidates are queued when a keyframe is made and verified over the
+    following scans, which bounds the work of every scan."""
+    loop_queue: int = 16
+    """at most this many candidates wait; when full, the oldest is dropped unverified (counted)."""
     graph: IncrementalConfig = field(default_factory=lambda: IncrementalConfig(
-        window=30, loop_neighbourhood=3, iterations=3, full_every=200, loop_kernel=None))
-    """incremental pose-graph settings (in keyframes)."""
+        window=30, loop_neighbourhood=3, iterations=3, full_every=200, loop_kernel="cauchy"))
+    """incremental pose-graph settings (in keyframes). Loop edges carry a Cauchy kernel (3 sigma): with plain least
+    squares the relation error moved with harmless changes (intel 0.023 -> 0.054 m for ``loop_candidates`` 4 -> 5:
+    a few verified-but-slightly-wrong loops pulled the map), with the kernel it stays at 0.015 m for both
+    (chosen on intel; fr079, aces and mit-csail are reported with it)."""
     markers: MarkerSettings = field(default_factory=MarkerSettings)
     """floor markers (used when steps carry readings): marker nodes and re-sighting solves."""
     map_resolution_m: float = 0.05
@@ -140,7 +148,7 @@ class LidarSLAMConfig:
         if self.loop_confirmations not in (0, 1):
             raise ValueError(f"LidarSLAMConfig.loop_confirmations must be 0 or 1 (got {self.loop_confirmations})")
         for n in ("local_map_keyframes", "loop_every", "loop_candidates", "loop_min_separation",
-                  "loop_pair_keyframes"):
+                  "loop_pair_keyframes", "loop_verify_per_scan", "loop_queue"):
             if getattr(self, n) < 1:
                 raise ValueError(f"LidarSLAMConfig.{n} must be >= 1 (got {getattr(self, n)})")
         if self.layers is not None and self.loop_closure:

@@ -249,10 +249,31 @@ class GraphSLAM(EstimatorLifecycle):
         self.optimizations += 1
         # refresh the uncertainty used by association (landmarks only when it is not the oracle) and the loop gate
         if self._assoc.method == "known":
-            t = int(self.values.pose_keys[-1])
-            self.belief.set(np.zeros(0, np.int64), self._marginals([t], window=window))
+            self._refresh_known(window, all_points)
         else:
             self._refresh_belief(all_points)
+
+    def _near_points(self, all_points: bool) -> NDArray[np.int64]:
+        """Landmarks within max_range_m + candidate_margin_m + belief_margin_m of the newest pose (or all)."""
+        if all_points:
+            return self.values.point_keys
+        cfg = self.config
+        reach = cfg.sensor.max_range_m + cfg.candidate_margin_m + cfg.belief_margin_m
+        return self.values.point_keys[self._reachable(int(self.values.pose_keys[-1]), self.values.poses[-1], reach)]
+
+    def _refresh_known(self, window: WindowSolve | None, all_points: bool) -> None:
+        """Known association: the newest pose's marginal (the loop gate's) and, after a whole-graph solve, the exact
+        marginals of the landmarks near it by the unknown path's rule (all with ``all_points``, and in window mode,
+        where whole-graph solves come at most every ``full_every`` steps), one factorisation. A window solve
+        refreshes the pose only: its marginal treats the held poses as independent priors, which measured tighter
+        than the whole graph's exact landmark marginals (overconfident)."""
+        t = int(self.values.pose_keys[-1])
+        near = self._near_points(all_points or self._windowed) if window is None else np.zeros(0, np.int64)
+        m = self._marginals([t], near, window=window)
+        self.belief.set(np.zeros(0, np.int64), m[:3, :3])
+        if near.size:
+            idx = 3 + 2 * np.arange(near.size)[:, None] + np.arange(2)
+            self.point_covs[self._point_rows(near)] = m[idx[:, :, None], idx[:, None, :]]
 
     @property
     def _windowed(self) -> bool:
@@ -283,12 +304,7 @@ class GraphSLAM(EstimatorLifecycle):
         """
         cfg = self.config
         t = int(self.values.pose_keys[-1])
-        pose = self.values.poses[-1]
-        if all_points:
-            near_keys = self.values.point_keys
-        else:
-            reach = cfg.sensor.max_range_m + cfg.candidate_margin_m + cfg.belief_margin_m
-            near_keys = self.values.point_keys[self._reachable(t, pose, reach)]
+        near_keys = self._near_points(all_points)
         src = np.unique(self.tent_src[self.tent_src != t])
         pose_keys = np.concatenate([[t], src]).astype(np.int64)
         m = self._marginals(pose_keys, near_keys)
