@@ -533,7 +533,7 @@ class MapLayers:
 class LayerStats:
     """Lifelong-mode counters of an estimator: keyframes, cells in the static layer, cells promoted into / demoted
     out of it so far, points labelled dynamic in the last scan and in all, bytes of the layer grids, tracking
-    failures."""
+    failures, readings of surveyed floor markers used as fixes."""
 
     keyframes: int = 0
     static_cells: int = 0
@@ -543,6 +543,7 @@ class LayerStats:
     dynamic_points_total: int = 0
     grid_bytes: int = 0
     tracking_failures: int = 0
+    marker_fixes: int = 0
 
 
 class PoseBuffer:
