@@ -8,7 +8,7 @@ from scipy.optimize import minimize
 from slam2d.config import with_overrides
 from slam2d.geometry import se2
 from slam2d.graph.lidar import LidarSLAM, LidarSLAMConfig, LifelongLidarConfig
-from slam2d.graph.lidar_lifelong import MarkerSurvey, fuse_marker_fixes
+from slam2d.graph.lidar_lifelong import LifelongMarkers, MarkerSurvey, fuse_marker_fixes
 from slam2d.log import MarkerReadings, Observations, Scan, Step
 from slam2d.maps.layers import LayersConfig
 from slam2d.models.floor_markers import marker_in_robot
@@ -67,7 +67,7 @@ def test_survey_lookup_and_bad_surveys() -> None:
     assert np.allclose(xy[[0, 2]], [[-1.0, 0.5], [1.0, 2.0]])
     with pytest.raises(ValueError, match="id 3 is listed twice"):
         MarkerSurvey(((3, 0.0, 0.0), (3, 1.0, 1.0)))
-    with pytest.raises(ValueError, match="surveyed_markers is used by the lifelong mode only"):
+    with pytest.raises(ValueError, match="used by the lifelong mode only"):
         LidarSLAMConfig(surveyed_markers=((0, 0.0, 0.0),))
 
 
@@ -85,6 +85,31 @@ def test_readings_of_markers_outside_the_survey_change_nothing() -> None:
                                                                                  np.array([5]))))
     assert est.layer_stats().marker_fixes == 1
     assert est.estimate().pose[0] > 0.02  # the reading says the robot stands 5 cm ahead of the origin
+
+
+def test_an_unsurveyed_marker_is_mapped_on_its_first_sighting_and_corrects_later_passes() -> None:
+    floor = np.diag([0.05, 0.05, 0.005]) ** 2
+    lm = LifelongMarkers(MarkerSurvey(((1, 0.0, 0.0),)), map_unsurveyed=True, camera_var=1e-4, survey_var=1e-4,
+                         match_floor=floor)
+    cov = np.eye(3) * 1e-6
+    first = [np.array([10.0, 2.0, 0.3]), np.array([10.1, 2.0, 0.3])]
+    mark = np.array([10.5, 2.4])
+    for p in first:  # its first sighting: mapped from the poses, the poses untouched
+        out, _ = lm.correct(p, cov, [4], marker_in_robot(p, mark)[None])
+        assert np.allclose(out, p) and lm.mapped == 0
+    lm.correct(first[-1], cov, np.zeros(0, np.int64), np.zeros((0, 2)))  # out of view: frozen
+    assert lm.mapped == 1 and lm.fixes == 0
+    truth = np.array([10.2, 2.1, 0.25])
+    guess = truth + np.array([0.1, -0.05, 0.0])
+    z = marker_in_robot(truth, mark)[None]
+    out, _ = lm.correct(guess, cov, [4], z)
+    ref, _ = fuse_marker_fixes(guess, cov + floor, z, mark[None], 1e-4 + floor[0, 0])
+    assert lm.fixes == 1 and np.allclose(out, ref)
+    assert np.hypot(*(out[:2] - truth[:2])) < 0.7 * np.hypot(*(guess[:2] - truth[:2]))
+    # without mapping an unsurveyed marker is ignored
+    plain = LifelongMarkers(MarkerSurvey(()), map_unsurveyed=False, camera_var=1e-4, survey_var=1e-4,
+                            match_floor=floor)
+    assert np.allclose(plain.correct(guess, cov, [4], z)[0], guess) and plain.mapped == 0
 
 
 def _shift_p99(markers: bool, steps: int, seed: int) -> tuple[float, int]:

@@ -33,7 +33,8 @@ layers grow with the mapped area, never with time). Loop closure is off in this 
 the map it made the first time, which bounds the error by the map's own; correcting a map drawn with drift would
 need the layers re-drawn from moved keyframes, which this mode does not do. Floor markers whose positions were
 surveyed (``surveyed_markers``) instead keep that drift out of the map: each reading corrects the matched pose
-before the scan is drawn (:mod:`slam2d.graph.lidar_lifelong`); unsurveyed markers are not used in this mode.
+before the scan is drawn (:mod:`slam2d.graph.lidar_lifelong`); unsurveyed markers can be mapped on their first
+sighting (``map_unsurveyed_markers``), which pins later passes to that first pass, drift included.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ from slam2d.frontend.icp import ICPTarget, icp, prepare_target
 from slam2d.geometry import se2
 from slam2d.graph.incremental import IncrementalPoseGraph
 from slam2d.graph.lidar_config import LidarSLAMConfig, LifelongLidarConfig
-from slam2d.graph.lidar_lifelong import MarkerSurvey, fuse_marker_fixes
+from slam2d.graph.lidar_lifelong import LifelongMarkers, MarkerSurvey
 from slam2d.graph.lidar_markers import KeyframeMarkers, MarkerPoseGraph
 from slam2d.log import Scan, Step
 from slam2d.maps.layers import DYNAMIC, LayerStats, MapLayers, PoseBuffer
@@ -111,7 +112,12 @@ class LidarSLAM(EstimatorLifecycle):
         self._labels: tuple[Array, NDArray[np.int8]] = (np.zeros((0, 2)), np.zeros(0, np.int8))
         self.dynamic_points_total = 0
         self.markers = KeyframeMarkers(self.config.markers)  # floor markers (graph/lidar_markers.py)
-        self._survey = MarkerSurvey(self.config.surveyed_markers) if self.config.surveyed_markers else None
+        c = self.config
+        self._lifelong_markers = None if not (c.surveyed_markers or c.map_unsurveyed_markers) else LifelongMarkers(
+            MarkerSurvey(c.surveyed_markers), map_unsurveyed=c.map_unsurveyed_markers,
+            camera_var=c.markers.camera.std_m**2, survey_var=c.survey_sigma_m**2,
+            match_floor=np.diag([c.marker_match_sigma_xy_m**2, c.marker_match_sigma_xy_m**2,
+                                 c.marker_match_sigma_theta_rad**2]))
 
     @property
     def keyframe_poses(self) -> Array:
@@ -189,19 +195,10 @@ class LidarSLAM(EstimatorLifecycle):
         self._poses.append(pose)
 
     def _survey_fix(self, step: Step, pose: Array, cov: Array) -> tuple[Array, Array]:
-        """The pose corrected by the step's readings of surveyed markers (lifelong mode; unchanged without any)."""
-        if step.markers is None or not len(step.markers) or self._survey is None or not self.config.markers.enabled:
+        """The pose corrected by the step's floor-marker readings (lifelong mode; unchanged without any)."""
+        if step.markers is None or self._lifelong_markers is None or not self.config.markers.enabled:
             return pose, cov
-        xy, known = self._survey.lookup(step.markers.ids)
-        if not known.any():
-            return pose, cov
-        cfg = self.config
-        floor = np.diag([cfg.marker_match_sigma_xy_m**2, cfg.marker_match_sigma_xy_m**2,
-                         cfg.marker_match_sigma_theta_rad**2])
-        self._survey.fixes += int(np.count_nonzero(known))
-        var = cfg.markers.camera.std_m**2 + cfg.survey_sigma_m**2
-        return fuse_marker_fixes(pose, cov + floor, np.asarray(step.markers.xy_m).reshape(-1, 2)[known], xy[known],
-                                 var)
+        return self._lifelong_markers.correct(pose, cov, step.markers.ids, step.markers.xy_m)
 
     def _add_coverage_keyframe(self, index: int, pose: Array, pts: Array, scan: Scan | None, cov: Array) -> None:
         """A keyframe on new ground, joined to the previous keyframe by the tracked relative pose."""
@@ -242,7 +239,8 @@ class LidarSLAM(EstimatorLifecycle):
                           dynamic_points_last=int(np.count_nonzero(self._labels[1] == DYNAMIC)),
                           dynamic_points_total=self.dynamic_points_total, grid_bytes=lay.nbytes(),
                           tracking_failures=self.tracking_failures,
-                          marker_fixes=0 if self._survey is None else self._survey.fixes)
+                          marker_fixes=0 if self._lifelong_markers is None else self._lifelong_markers.fixes,
+                          markers_mapped=0 if self._lifelong_markers is None else self._lifelong_markers.mapped)
 
     def _place(self, index: int, pose: Array) -> None:
         """A non-keyframe pose: stored relative to the newest keyframe."""
