@@ -20,6 +20,12 @@ numbers, static-layer cells inside the forklifts' true boxes (now), on the forkl
 routes, where no structure stands: every forklift trace the map ever kept), farther than 0.2 m from any true static
 structure (ghosts, and the map's own drift), and loops (the lifelong mode closes none: a revisit is localised
 against the map).
+
+``--markers surveyed`` puts the challenge's floor markers down (every 10 m along each aisle and road, and at every
+crossing; read by the downward camera within 1 m) and hands the estimator their positions as a survey would give
+them: the true positions plus a normal error of ``--survey-sigma`` (1 cm) per axis, drawn once. That the warehouse
+surveyed its markers is an assumption of this mode. ``--markers mapped`` puts the same markers down without a
+survey: each is mapped on its first sighting and corrects later passes (it carries that pass's drift).
 """
 
 from __future__ import annotations
@@ -84,21 +90,40 @@ def aligned_errors(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return np.asarray(np.hypot(*((est - me) @ rot.T + mt - truth).T))
 
 
+def survey(sim: Simulator, sigma_m: float, seed: int) -> tuple[tuple[int, float, float], ...]:
+    """The world's floor markers as a survey would give them: (id, x, y), each position off the truth by a normal
+    draw of ``sigma_m`` per axis (its own generator: the simulator's streams are untouched). Empty without
+    markers."""
+    true = sim.world.floor_markers
+    xy = true + np.random.default_rng([seed, 17]).normal(0.0, sigma_m, true.shape)
+    return tuple((i, float(x), float(y)) for i, (x, y) in enumerate(xy.tolist()))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--hours", type=float, default=1.0, help="simulated hours (default 1)")
     ap.add_argument("--report-min", type=float, default=60.0, help="report every this many simulated minutes")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--markers", choices=("off", "surveyed", "mapped"), default="off",
+                    help="floor markers: off, on with surveyed positions, or on and mapped on first sighting "
+                         "(default off)")
+    ap.add_argument("--survey-sigma", type=float, default=0.01,
+                    help="with --markers surveyed: the survey's error per axis, drawn once per marker (m)")
     ap.add_argument("--json", default=None, help="write the final numbers as JSON")
     args = ap.parse_args()
 
-    cfg = with_overrides(ScenarioConfig(name="warehouse-challenge"), {"dt_s": 0.1})
+    over = {"dt_s": 0.1} if args.markers == "off" else {"dt_s": 0.1, "warehouse.floor_markers": True}
+    cfg = with_overrides(ScenarioConfig(name="warehouse-challenge"), over)
     sim = Simulator(cfg, seed=args.seed, record=False)
     driver = sim.driver()
     dt = float(sim.config.dt_s or 0.1)
     steps = round(args.hours * 3600 / dt)
     every = max(1, round(args.report_min * 60 / dt))
-    est = LidarSLAM(LidarSLAMConfig(layers=LayersConfig(), loop_closure=False))
+    est = LidarSLAM(LidarSLAMConfig(layers=LayersConfig(), loop_closure=False,
+                                    surveyed_markers=survey(sim, args.survey_sigma, args.seed)
+                                    if args.markers == "surveyed" else (),
+                                    map_unsurveyed_markers=args.markers == "mapped",
+                                    survey_sigma_m=max(args.survey_sigma, 1e-3)))
     est.reset(sim.pose, rng=np.random.default_rng(args.seed))
     est.step(dock_step(sim))
     pos_err = np.zeros(steps, np.float32)
@@ -106,6 +131,10 @@ def main() -> None:
     lat_ms = np.zeros(steps, np.float32)
     est_xy = np.zeros((steps, 2), np.float32)
     true_xy = np.zeros((steps, 2), np.float32)
+    mk = {"off": "off", "mapped": f"{len(sim.world.floor_markers)} unsurveyed, mapped on first sighting",
+          "surveyed": f"{len(sim.world.floor_markers)} surveyed (survey error {100 * args.survey_sigma:g} cm per "
+                      "axis)"}[args.markers]
+    print(f"floor markers: {mk}", flush=True)
     print(f"warehouse-challenge seed {args.seed}: {len(sim.world.moving)} forklifts, lidar "
           f"{sim.config.lidar.beams} beams / {sim.config.lidar.max_range_m} m at {1 / dt:.0f} Hz, every scan "
           f"processed; {steps} steps = {args.hours:g} h simulated", flush=True)
@@ -127,6 +156,7 @@ def main() -> None:
                   f"| RSS {rss_mib():6.1f} MiB | keyframes {s.keyframes} | static cells {s.static_cells} | "
                   f"scan p50 {np.percentile(lat_ms[:n], 50):5.2f} p99 {np.percentile(lat_ms[:n], 99):5.2f} ms | "
                   f"CPU {lat_ms[:n].sum() / 1e3 / (n * dt):.3f} core | failures {s.tracking_failures} | "
+                  f"marker fixes {s.marker_fixes} (mapped {s.markers_mapped}) | "
                   f"static cells in forklifts / on tracks / > 0.2 m off {'/'.join(map(str, layer_truth(est, sim)))} | "
                   f"wall {time.perf_counter() - wall0:6.0f} s", flush=True)
     est.finalize()
@@ -134,7 +164,7 @@ def main() -> None:
     in_forklifts, on_tracks, ghosts = layer_truth(est, sim)
     s = est.layer_stats()
     rec = {
-        "seed": args.seed, "hours": args.hours, "scans_processed": steps, "rate_hz": 1 / dt,
+        "seed": args.seed, "hours": args.hours, "markers": args.markers,  "scans_processed": steps, "rate_hz": 1 / dt,
         "pos_err_p99_cm": float(100 * np.percentile(pos_err, 99)),
         "aligned_pos_err_p99_cm": float(100 * np.percentile(aligned, 99)), "pos_err_max_cm": float(100 * pos_err.max()),
         "head_err_p99_deg": float(np.degrees(np.percentile(head_err, 99))),
@@ -146,7 +176,9 @@ def main() -> None:
         "rss_mib_end": rss_mib(), "keyframes": s.keyframes, "static_cells": s.static_cells,
         "static_cells_in_forklifts": in_forklifts, "static_cells_on_forklift_tracks": on_tracks,
         "static_cells_off_structure": ghosts, "loops_accepted": 0,
-        "false_loops": 0, "tracking_failures": s.tracking_failures, "dynamic_points_total": s.dynamic_points_total,
+        "false_loops": 0, "tracking_failures": s.tracking_failures,
+        "marker_fixes": s.marker_fixes, "markers_mapped": s.markers_mapped,
+        "dynamic_points_total": s.dynamic_points_total,
     }
     print(f"whole run: pos p99 {rec['pos_err_p99_cm']:.1f} cm (max {rec['pos_err_max_cm']:.1f}; after one rigid "
           f"alignment of the whole run to the truth: p99 {rec['aligned_pos_err_p99_cm']:.1f} cm), head p99 "

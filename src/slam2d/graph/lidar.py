@@ -36,7 +36,10 @@ static layer (they go to the decaying dynamic layer). A scan becomes a keyframe 
 ``coverage_m`` (keyframe culling by coverage: in mapped ground nothing is added, so keyframes, the graph and the
 layers grow with the mapped area, never with time). Loop closure is off in this mode: a revisit is matched against
 the map it made the first time, which bounds the error by the map's own; correcting a map drawn with drift would
-need the layers re-drawn from moved keyframes, which this mode does not do.
+need the layers re-drawn from moved keyframes, which this mode does not do. Floor markers whose positions were
+surveyed (``surveyed_markers``) instead keep that drift out of the map: each reading corrects the matched pose
+before the scan is drawn (:mod:`slam2d.graph.lidar_lifelong`); unsurveyed markers can be mapped on their first
+sighting (``map_unsurveyed_markers``), which pins later passes to that first pass, drift included.
 """
 
 from __future__ import annotations
@@ -51,6 +54,7 @@ from slam2d.frontend.icp import ICPTarget, icp, prepare_target
 from slam2d.geometry import se2
 from slam2d.graph.incremental import IncrementalPoseGraph
 from slam2d.graph.lidar_config import LidarSLAMConfig, LifelongLidarConfig
+from slam2d.graph.lidar_lifelong import LifelongMarkers, MarkerSurvey
 from slam2d.graph.lidar_loops import LoopCheck, confirmed_mask, verify_loop
 from slam2d.graph.lidar_markers import KeyframeMarkers, MarkerPoseGraph
 from slam2d.log import Scan, Step
@@ -118,6 +122,12 @@ class LidarSLAM(EstimatorLifecycle):
         self._labels: tuple[Array, NDArray[np.int8]] = (np.zeros((0, 2)), np.zeros(0, np.int8))
         self.dynamic_points_total = 0
         self.markers = KeyframeMarkers(self.config.markers)  # floor markers (graph/lidar_markers.py)
+        c = self.config
+        self._lifelong_markers = None if not (c.surveyed_markers or c.map_unsurveyed_markers) else LifelongMarkers(
+            MarkerSurvey(c.surveyed_markers), map_unsurveyed=c.map_unsurveyed_markers,
+            camera_var=c.markers.camera.std_m**2, survey_var=c.survey_sigma_m**2,
+            match_floor=np.diag([c.marker_match_sigma_xy_m**2, c.marker_match_sigma_xy_m**2,
+                                 c.marker_match_sigma_theta_rad**2]))
 
     @property
     def keyframe_poses(self) -> Array:
@@ -175,10 +185,8 @@ class LidarSLAM(EstimatorLifecycle):
         assert lay is not None
         pose, cov = guess, self._cov
         if pts is not None and len(pts) >= cfg.icp.min_matches:
-            if lay.integrations == 0:  # the first scan is the map: nothing to localise against yet
-                labels = lay.classify(pose, pts)
-                lay.integrate(pose, pts, labels, step.time_s, bootstrap=True)
-            else:
+            first = lay.integrations == 0  # the first scan is the map: nothing to localise against yet
+            if not first:
                 sel = pts[np.unique(np.linspace(0, len(pts) - 1, min(len(pts), cfg.match_points)).astype(np.int64))]
                 m = lay.match(sel[lay.classify(guess, sel) != DYNAMIC], guess)  # dynamic points never pull
                 if m.constrained and m.inliers >= cfg.min_inliers:
@@ -186,8 +194,9 @@ class LidarSLAM(EstimatorLifecycle):
                 else:
                     self.tracking_failures += 1
                     cov = np.diag([0.2, 0.2, 0.05]) ** 2
-                labels = lay.classify(pose, pts)
-                lay.integrate(pose, pts, labels, step.time_s)
+            pose, cov = self._survey_fix(step, pose, cov)  # before drawing: the layers follow the survey
+            labels = lay.classify(pose, pts)
+            lay.integrate(pose, pts, labels, step.time_s, bootstrap=first)
             self._labels = (pts, labels)
             self.dynamic_points_total += int(np.count_nonzero(labels == DYNAMIC))
             near = self._kf_xy - pose[:2]
@@ -195,6 +204,12 @@ class LidarSLAM(EstimatorLifecycle):
                 self._add_coverage_keyframe(step.index, pose, pts, step.scan, cov)
         self._pose, self._cov = pose, cov
         self._poses.append(pose)
+
+    def _survey_fix(self, step: Step, pose: Array, cov: Array) -> tuple[Array, Array]:
+        """The pose corrected by the step's floor-marker readings (lifelong mode; unchanged without any)."""
+        if step.markers is None or self._lifelong_markers is None or not self.config.markers.enabled:
+            return pose, cov
+        return self._lifelong_markers.correct(pose, cov, step.markers.ids, step.markers.xy_m)
 
     def _add_coverage_keyframe(self, index: int, pose: Array, pts: Array, scan: Scan | None, cov: Array) -> None:
         """A keyframe on new ground, joined to the previous keyframe by the tracked relative pose."""
@@ -234,7 +249,9 @@ class LidarSLAM(EstimatorLifecycle):
                           promoted=lay.promoted, demoted=lay.demoted,
                           dynamic_points_last=int(np.count_nonzero(self._labels[1] == DYNAMIC)),
                           dynamic_points_total=self.dynamic_points_total, grid_bytes=lay.nbytes(),
-                          tracking_failures=self.tracking_failures)
+                          tracking_failures=self.tracking_failures,
+                          marker_fixes=0 if self._lifelong_markers is None else self._lifelong_markers.fixes,
+                          markers_mapped=0 if self._lifelong_markers is None else self._lifelong_markers.mapped)
 
     def _place(self, index: int, pose: Array) -> None:
         """A non-keyframe pose: stored relative to the newest keyframe."""

@@ -138,6 +138,19 @@ class LidarSLAMConfig:
     min_inliers: int = 40
     """lifelong mode: a match needs this many points within ``layers.inlier_m`` of the static layer, else the
     odometry guess is kept (counted as a tracking failure)."""
+    surveyed_markers: tuple[tuple[int, float, float], ...] = ()
+    """lifelong mode: floor markers whose map-frame positions were surveyed, (id, x, y); each reading of one
+    corrects the matched pose (:mod:`slam2d.graph.lidar_lifelong`). Empty: markers are not used in this mode."""
+    map_unsurveyed_markers: bool = False
+    """lifelong mode: map markers missing from the survey on their first sighting (the mean of that sighting's
+    readings) and let later readings correct the pose; such a marker carries the drift of the pass that mapped it."""
+    survey_sigma_m: float = 0.01
+    """lifelong mode: standard deviation of a surveyed marker position per axis (m)."""
+    marker_match_sigma_xy_m: float = 0.05
+    """lifelong mode: floor on the standard deviation of the static-layer match, in x and y, when a marker reading
+    corrects it (the match's own covariance ignores the layer's shared error) (m)."""
+    marker_match_sigma_theta_rad: float = 0.005
+    """lifelong mode: the same floor in heading (rad)."""
 
     def __post_init__(self) -> None:
         check_positive(self, "keyframe_distance_m", "keyframe_angle_rad", "max_range_m", "min_sigma_xy_m",
@@ -154,7 +167,11 @@ class LidarSLAMConfig:
         if self.layers is not None and self.loop_closure:
             raise ValueError("LidarSLAMConfig.layers needs loop_closure=False: a loop would move keyframes under a "
                              "static layer that was built at the tracked poses")
-        check_positive(self, "coverage_m", "match_points", "min_inliers")
+        check_positive(self, "coverage_m", "match_points", "min_inliers", "survey_sigma_m", "marker_match_sigma_xy_m",
+                       "marker_match_sigma_theta_rad")
+        if (self.surveyed_markers or self.map_unsurveyed_markers) and self.layers is None:
+            raise ValueError("LidarSLAMConfig.surveyed_markers and map_unsurveyed_markers are used by the lifelong "
+                             "mode only (set layers)")
         check_nonnegative(self, "loop_static_radius_m")
         if self.loop_map_keyframes < 0:
             raise ValueError(f"LidarSLAMConfig.loop_map_keyframes must be >= 0 (got {self.loop_map_keyframes})")

@@ -533,7 +533,7 @@ class MapLayers:
 class LayerStats:
     """Lifelong-mode counters of an estimator: keyframes, cells in the static layer, cells promoted into / demoted
     out of it so far, points labelled dynamic in the last scan and in all, bytes of the layer grids, tracking
-    failures."""
+    failures, floor-marker readings used as pose fixes, floor markers mapped on first sighting (unsurveyed ones)."""
 
     keyframes: int = 0
     static_cells: int = 0
@@ -543,6 +543,8 @@ class LayerStats:
     dynamic_points_total: int = 0
     grid_bytes: int = 0
     tracking_failures: int = 0
+    marker_fixes: int = 0
+    markers_mapped: int = 0
 
 
 class PoseBuffer:
