@@ -106,9 +106,9 @@ def test_no_false_loops_among_identical_warehouse_aisles() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="known (issue 16): warehouse seed 2 closes 2 false loops between identical "
-                                       "aisles farther apart than the verification window")
 def test_no_false_loops_on_warehouse_seed_2() -> None:
+    """Seed 2 used to close 2 false loops along the middle aisle, matched on a moving forklift (the aisle's walls say
+    nothing along it); self-similar loops are now verified again on static structure only."""
     from slam2d.lab.runner import run_named
 
     _, rec = run_named("lidar", "warehouse", seed=2, overrides={"steps": 1200}, progress=False)

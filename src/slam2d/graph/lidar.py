@@ -14,8 +14,10 @@ Per step (one scan):
    ``loop_verify_per_scan`` of them against a local map around the old keyframe: correlative matching over a window
    (:mod:`slam2d.frontend.correlative`; the score must be high and no competing alignment nearly as good, which
    rejects parallel identical aisles and corridor axes), then ICP refinement (fitness and residual gates) and a
-   chi-square gate on the ICP covariance between the correlative and ICP results; a verified loop enters the graph
-   once a second one agrees with it;
+   chi-square gate on the ICP covariance between the correlative and ICP results; a loop in a self-similar place
+   (ambiguity above ``loop_static_ambiguity``) is verified again on static structure only, the points no other
+   keyframe contradicts (:mod:`slam2d.graph.lidar_loops`: along an aisle a moving forklift can be all that breaks
+   the tie); a verified loop enters the graph once a second one agrees with it;
 4. the keyframe and its edges enter :class:`~slam2d.graph.incremental.IncrementalPoseGraph`: a local solve when a
    loop enters, then ``loop_full_iterations`` whole-graph Gauss-Newton iterations, one per scan, a whole-graph
    iteration every ``graph.full_every`` keyframes, the whole graph to convergence in ``finalize`` (bounded work per
@@ -43,18 +45,17 @@ sighting (``map_unsurveyed_markers``), which pins later passes to that first pas
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, LoopEvent
-from slam2d.frontend.correlative import correlative_match
 from slam2d.frontend.icp import ICPTarget, icp, prepare_target
 from slam2d.geometry import se2
 from slam2d.graph.incremental import IncrementalPoseGraph
 from slam2d.graph.lidar_config import LidarSLAMConfig, LifelongLidarConfig
 from slam2d.graph.lidar_lifelong import LifelongMarkers, MarkerSurvey
+from slam2d.graph.lidar_loops import LoopCheck, confirmed_mask, verify_loop
 from slam2d.graph.lidar_markers import KeyframeMarkers, MarkerPoseGraph
 from slam2d.log import Scan, Step
 from slam2d.maps.layers import DYNAMIC, LayerStats, MapLayers, PoseBuffer
@@ -415,32 +416,29 @@ class LidarSLAM(EstimatorLifecycle):
         return [(c, *self._verify_candidate(c, k, pose, pts)) for c in self._loop_candidates(k, pose)]
 
     def _verify_candidate(self, c: int, k: int, pose: Array, pts: Array) -> tuple[Array, Array, bool]:
-        """Check old keyframe ``c`` against keyframe ``k`` (its scan-frame points ``pts``, at ``pose``) on a local
-        map around ``c``: (T_c_k, information, ok)."""
-        cfg = self.config
+        """Verify old keyframe ``c`` as a loop of new keyframe ``k`` at ``pose`` (scan points ``pts``):
+        (T_c_k, information, ok)."""
+        chk = self._check_candidate(c, k, pose, pts)
+        return chk.transform, chk.information, chk.ok
+
+    def _check_candidate(self, c: int, k: int, pose: Array, pts: Array) -> LoopCheck:
+        """Every gate of a loop candidate, with the values it saw (:mod:`slam2d.graph.lidar_loops`)."""
         assert self.graph is not None
-        poses = self.graph.poses
-        m = cfg.loop_map_keyframes
-        target = self._world_points(c - m, c + m + 1, frame=poses[c])
+        cfg = self.config
+        m, poses = cfg.loop_map_keyframes, self.graph.poses
         guess = se2.between(poses[c], pose)
-        cm = correlative_match(pts, target, guess, cfg.correlative)
-        ok = cm.score >= cfg.loop_min_score and cm.ambiguity <= cfg.loop_max_ambiguity
-        info: Array = np.zeros((3, 3))
-        t = cm.transform
-        if ok:
-            res = icp(pts, target, initial=cm.transform, config=cfg.loop_icp)
-            ok = bool(res.converged and res.fitness >= cfg.loop_min_fitness and res.rmse_m <= cfg.loop_max_rmse_m
-                      and np.all(np.isfinite(res.covariance))
-                      and np.sqrt(np.linalg.eigvalsh(res.covariance[:2, :2])[-1]) <= cfg.loop_max_sigma_m)
-            if ok:
-                floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
-                info = np.asarray(np.linalg.inv(res.covariance + floor), dtype=np.float64)
-                e = se2.local(res.transform, cm.transform)
-                ok = float(e @ info @ e) <= cfg.loop_chi2
-                t = res.transform
-            if ok and cfg.loop_wide_window_m > 0:
-                ok = self._unique_in_wide_window(pts, target, t)
-        return t, info, ok
+        target = self._world_points(c - m, c + m + 1, frame=poses[c])
+        chk = verify_loop(pts, target, guess, cfg)
+        if cfg.loop_static_radius_m > 0 and chk.ok and chk.ambiguity > cfg.loop_static_ambiguity:
+            # a self-similar place: verify again on what two keyframes saw on the same surface (a moving object
+            # may be all that breaks the tie): the old keyframe's local map, the new scan against the keyframes
+            # just before it
+            r, a, s = cfg.loop_static_radius_m, cfg.loop_static_normal_rad, cfg.loop_static_seen_m
+            old = [self._world_points(j, j + 1, frame=poses[c]) for j in range(max(c - m, 0), min(c + m + 1, k))]
+            new = [pts] + [self._world_points(j, j + 1, frame=pose) for j in range(max(k - m, 0), k)]
+            static_pts = pts[confirmed_mask(new, r, a, s)[:len(pts)]]
+            chk = verify_loop(static_pts, np.vstack(old)[confirmed_mask(old, r, a, s)], guess, cfg)
+        return chk
 
     def close_loop_now(self, z: Array) -> bool:
         """Search loops for the newest keyframe now (the lab's "close loop now"); ``z`` (the newest landmark
@@ -460,15 +458,6 @@ class LidarSLAM(EstimatorLifecycle):
             self.loops_accepted += len(found)
         self._new_loops = self._new_loops + tuple(events)
         return bool(found)
-
-    def _unique_in_wide_window(self, pts: Array, target: Array, t: Array) -> bool:
-        """Is ``t`` the only good alignment within ``loop_wide_window_m``? A coarse correlative search over the wide
-        window (every third point, coarse steps of ``loop_wide_step_cells`` cells): a parallel identical aisle
-        lies outside the verification window but inside this one, and scores as well."""
-        cfg = self.config
-        wide = replace(cfg.correlative, window_xy_m=cfg.loop_wide_window_m, coarse_cells=cfg.loop_wide_step_cells,
-                       max_refined=1)
-        return correlative_match(pts[::3], target, t, wide).ambiguity <= cfg.loop_wide_max_ambiguity
 
     # ------------------------------------------------------------------ outputs
     def trajectory(self) -> Array:
