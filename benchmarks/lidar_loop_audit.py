@@ -34,9 +34,9 @@ class _Audited(LidarSLAM):
         super().reset(initial_pose, rng=rng)
         self.verified: list[tuple[int, int, LoopCheck, Any]] = []
 
-    def _check_candidate(self, c: int, k: int, pose: Any, pts: Any, *, static: bool) -> LoopCheck | None:
-        chk = super()._check_candidate(c, k, pose, pts, static=static)
-        if chk is not None and chk.ok:
+    def _check_candidate(self, c: int, k: int, pose: Any, pts: Any) -> LoopCheck:
+        chk = super()._check_candidate(c, k, pose, pts)
+        if chk.ok:
             assert self.graph is not None
             self.verified.append((self._kf_step[c], self._kf_step[k], chk, se2.between(self.graph.poses[c], pose)))
         return chk

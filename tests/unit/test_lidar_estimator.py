@@ -122,13 +122,13 @@ def test_loop_work_is_bounded_per_scan_and_finalize_verifies_what_is_left() -> N
     cfg = LidarSLAMConfig(loop_every=1, loop_candidates=4, loop_min_separation=10)
     est = LidarSLAM(cfg)
     calls: list[int] = []
-    check = est._check_candidate
+    verify = est._verify_candidate
 
-    def counted(*a: object, **kw: object) -> object:
-        calls[-1] += 1  # a check on all points and its re-check on static structure are separate units of work
-        return check(*a, **kw)  # type: ignore[arg-type]
+    def counted(*a: object) -> object:
+        calls[-1] += 1
+        return verify(*a)  # type: ignore[arg-type]
 
-    est._check_candidate = counted  # type: ignore[method-assign]
+    est._verify_candidate = counted  # type: ignore[method-assign]
     est.reset(log.initial_pose, rng=np.random.default_rng(0))
     waiting = 0
     for i in range(1, log.num_steps + 1):
@@ -139,7 +139,7 @@ def test_loop_work_is_bounded_per_scan_and_finalize_verifies_what_is_left() -> N
     left = len(est._queue)
     calls.append(0)
     est.finalize()
-    assert len(est._queue) == 0 and calls[-1] >= left  # (plus the re-checks some of them bring)
+    assert len(est._queue) == 0 and calls[-1] == left
     small = LidarSLAM(replace(cfg, loop_queue=2))
     run(small, log, rng=np.random.default_rng(0), progress=False)
     assert small.loops_dropped > 0

@@ -108,8 +108,7 @@ class LidarSLAM(EstimatorLifecycle):
         self._new_loops: tuple[LoopEvent, ...] = ()
         # verified loops of the last ``loop_pair_keyframes`` keyframes: (old kf, new kf, T, information, accepted)
         self._pool: list[tuple[int, int, Array, Array, bool]] = []
-        # loop candidates (old kf, new kf, on static structure only) awaiting verification
-        self._queue: deque[tuple[int, int, bool]] = deque()
+        self._queue: deque[tuple[int, int]] = deque()  # loop candidates (old kf, new kf) awaiting verification
         self._full_pending = 0  # whole-graph Gauss-Newton iterations still owed after a loop
         self.loops_dropped = 0  # candidates dropped unverified because the queue was full
         self.tracking_failures = 0
@@ -292,7 +291,7 @@ class LidarSLAM(EstimatorLifecycle):
                 if len(self._queue) >= cfg.loop_queue:
                     self._queue.popleft()  # the oldest waiting candidate: its keyframe has moved on the most
                     self.loops_dropped += 1
-                self._queue.append((c, k, False))
+                self._queue.append((c, k))
 
     # ------------------------------------------------------------------ loop work, bounded per scan
     def _loop_work(self, verifications: int) -> None:
@@ -311,12 +310,8 @@ class LidarSLAM(EstimatorLifecycle):
         for _ in range(verifications):
             if not self._queue:
                 break
-            c, k, static = self._queue.popleft()
-            chk = self._check_candidate(c, k, self.graph.poses[k], self._kf_points[k], static=static)
-            if chk is None:  # its re-check on static structure is the next scan's work
-                self._queue.appendleft((c, k, True))
-                continue
-            t_ck, info, ok = chk.transform, chk.information, chk.ok
+            c, k = self._queue.popleft()
+            t_ck, info, ok = self._verify_candidate(c, k, self.graph.poses[k], self._kf_points[k])
             if self._decide(c, k, t_ck, info, ok, events):
                 moved = True
                 self._full_pending = self.config.loop_full_iterations
@@ -421,33 +416,29 @@ class LidarSLAM(EstimatorLifecycle):
         return [(c, *self._verify_candidate(c, k, pose, pts)) for c in self._loop_candidates(k, pose)]
 
     def _verify_candidate(self, c: int, k: int, pose: Array, pts: Array) -> tuple[Array, Array, bool]:
-        """Verify old keyframe ``c`` as a loop of new keyframe ``k`` at ``pose`` (scan points ``pts``), the
-        re-check on static structure included: (T_c_k, information, ok)."""
-        chk = self._check_candidate(c, k, pose, pts, static=False)
-        if chk is None:
-            chk = self._check_candidate(c, k, pose, pts, static=True)
-        assert chk is not None
+        """Verify old keyframe ``c`` as a loop of new keyframe ``k`` at ``pose`` (scan points ``pts``):
+        (T_c_k, information, ok)."""
+        chk = self._check_candidate(c, k, pose, pts)
         return chk.transform, chk.information, chk.ok
 
-    def _check_candidate(self, c: int, k: int, pose: Array, pts: Array, *, static: bool) -> LoopCheck | None:
-        """Every gate of a loop candidate, with the values it saw (:mod:`slam2d.graph.lidar_loops`), on all
-        points or (``static``) on static structure only. None: it passed on all points in a self-similar place, and
-        must be verified again on static structure (a moving object may be all that breaks the tie there)."""
+    def _check_candidate(self, c: int, k: int, pose: Array, pts: Array) -> LoopCheck:
+        """Every gate of a loop candidate, with the values it saw (:mod:`slam2d.graph.lidar_loops`)."""
         assert self.graph is not None
         cfg = self.config
         m, poses = cfg.loop_map_keyframes, self.graph.poses
         guess = se2.between(poses[c], pose)
-        if not static:
-            chk = verify_loop(pts, self._world_points(c - m, c + m + 1, frame=poses[c]), guess, cfg)
-            return None if cfg.loop_static_radius_m > 0 and chk.ok and chk.ambiguity > cfg.loop_static_ambiguity \
-                else chk
-        # what two keyframes saw on the same surface: the old keyframe's local map, the new scan against the
-        # keyframes just before it
-        r, a, s = cfg.loop_static_radius_m, cfg.loop_static_normal_rad, cfg.loop_static_seen_m
-        old = [self._world_points(j, j + 1, frame=poses[c]) for j in range(max(c - m, 0), min(c + m + 1, k))]
-        new = [pts] + [self._world_points(j, j + 1, frame=pose) for j in range(max(k - m, 0), k)]
-        static_pts = pts[confirmed_mask(new, r, a, s)[:len(pts)]]
-        return verify_loop(static_pts, np.vstack(old)[confirmed_mask(old, r, a, s)], guess, cfg)
+        target = self._world_points(c - m, c + m + 1, frame=poses[c])
+        chk = verify_loop(pts, target, guess, cfg)
+        if cfg.loop_static_radius_m > 0 and chk.ok and chk.ambiguity > cfg.loop_static_ambiguity:
+            # a self-similar place: verify again on what two keyframes saw on the same surface (a moving object
+            # may be all that breaks the tie): the old keyframe's local map, the new scan against the keyframes
+            # just before it
+            r, a, s = cfg.loop_static_radius_m, cfg.loop_static_normal_rad, cfg.loop_static_seen_m
+            old = [self._world_points(j, j + 1, frame=poses[c]) for j in range(max(c - m, 0), min(c + m + 1, k))]
+            new = [pts] + [self._world_points(j, j + 1, frame=pose) for j in range(max(k - m, 0), k)]
+            static_pts = pts[confirmed_mask(new, r, a, s)[:len(pts)]]
+            chk = verify_loop(static_pts, np.vstack(old)[confirmed_mask(old, r, a, s)], guess, cfg)
+        return chk
 
     def close_loop_now(self, z: Array) -> bool:
         """Search loops for the newest keyframe now (the lab's "close loop now"); ``z`` (the newest landmark
