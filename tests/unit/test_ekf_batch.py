@@ -5,15 +5,15 @@ import numpy as np
 import pytest
 
 import slam2d
+from conftest import dense_joseph
 from slam2d.filters.ekf_slam import (
     CovarianceError,
     EKFConfig,
     ekf_update_range_bearing,
     ekf_update_range_bearing_batch,
 )
-from slam2d.geometry.angles import wrap_angle
 from slam2d.lab.registry import make_estimator
-from slam2d.models.sensors import range_bearing, range_bearing_jacobians
+from slam2d.models.sensors import range_bearing
 
 
 def _state(rng, n_l):
@@ -24,27 +24,6 @@ def _state(rng, n_l):
     return mu, P
 
 
-def _dense_joseph(mu, P, js, z, R):
-    """Stacked dense H, gain K = P H^T S^-1, Joseph-form covariance."""
-    n, k = mu.size, len(js)
-    H = np.zeros((2 * k, n))
-    zp = np.zeros((k, 2))
-    for i, j in enumerate(js):
-        lm = mu[3 + 2 * j: 5 + 2 * j]
-        zp[i] = range_bearing(mu[:3], lm)
-        hp, hl = range_bearing_jacobians(mu[:3], lm)
-        H[2 * i: 2 * i + 2, :3] = hp
-        H[2 * i: 2 * i + 2, 3 + 2 * j: 5 + 2 * j] = hl
-    nu = np.column_stack([z[:, 0] - zp[:, 0], wrap_angle(z[:, 1] - zp[:, 1])]).reshape(-1)
-    Rb = np.kron(np.eye(k), R)
-    S = H @ P @ H.T + Rb
-    K = P @ H.T @ np.linalg.inv(S)
-    ikh = np.eye(n) - K @ H
-    mu_new = mu + K @ nu
-    mu_new[2] = wrap_angle(mu_new[2])
-    return mu_new, ikh @ P @ ikh.T + K @ Rb @ K.T
-
-
 @pytest.mark.parametrize("js", [[0, 3, 1, 4], [2, 2, 5], [1]])
 def test_batch_update_is_the_dense_joint_kalman_update(rng, js):
     mu, P = _state(rng, 6)
@@ -52,7 +31,7 @@ def test_batch_update_is_the_dense_joint_kalman_update(rng, js):
     lms = mu[3:].reshape(-1, 2)[js]
     z = range_bearing(mu[:3], lms).reshape(-1, 2) + rng.normal(0, [0.1, 0.02], (len(js), 2))
     R = np.diag([0.1**2, 0.02**2])
-    mu_ref, P_ref = _dense_joseph(mu, P, js, z, R)
+    mu_ref, P_ref = dense_joseph(mu, P, js, z, R)
     mu_b, P_b = ekf_update_range_bearing_batch(mu, P, js, z, R)
     np.testing.assert_allclose(mu_b, mu_ref, atol=1e-10)
     np.testing.assert_allclose(P_b, P_ref, atol=1e-10)

@@ -4,13 +4,13 @@ Joseph form applied chunk by chunk, and against chained calls of the single join
 import numpy as np
 import pytest
 
+from conftest import dense_joseph
 from slam2d.filters.ekf_slam import (
     CovarianceError,
     ekf_update_range_bearing_batch,
     ekf_update_range_bearing_batches,
 )
-from slam2d.geometry.angles import wrap_angle
-from slam2d.models.sensors import range_bearing, range_bearing_jacobians
+from slam2d.models.sensors import range_bearing
 
 R = np.diag([0.1**2, 0.02**2])
 
@@ -28,27 +28,6 @@ def _observations(rng, mu, js):
     return range_bearing(mu[:3], lms).reshape(-1, 2) + rng.normal(0, [0.1, 0.02], (len(js), 2))
 
 
-def _dense_joseph(mu, P, js, z):
-    """Stacked dense H (2K x n), K = P H^T S^-1, (I-KH) P (I-KH)^T + K R K^T: the plain textbook update."""
-    n, k = mu.size, len(js)
-    H = np.zeros((2 * k, n))
-    zp = np.zeros((k, 2))
-    for i, j in enumerate(js):
-        lm = mu[3 + 2 * j: 5 + 2 * j]
-        zp[i] = range_bearing(mu[:3], lm)
-        hp, hl = range_bearing_jacobians(mu[:3], lm)
-        H[2 * i: 2 * i + 2, :3] = hp
-        H[2 * i: 2 * i + 2, 3 + 2 * j: 5 + 2 * j] = hl
-    nu = np.column_stack([z[:, 0] - zp[:, 0], wrap_angle(z[:, 1] - zp[:, 1])]).reshape(-1)
-    Rb = np.kron(np.eye(k), R)
-    S = H @ P @ H.T + Rb
-    K = P @ H.T @ np.linalg.inv(S)
-    ikh = np.eye(n) - K @ H
-    mu_new = mu + K @ nu
-    mu_new[2] = wrap_angle(mu_new[2])
-    return mu_new, ikh @ P @ ikh.T + K @ Rb @ K.T
-
-
 @pytest.mark.parametrize(("n_l", "k", "batch"), [(30, 70, 16), (12, 40, 64), (80, 33, 7), (5, 1, 4)])
 def test_chunked_update_is_the_dense_joseph_form_chunk_by_chunk(rng, n_l, k, batch):
     mu, P = _state(rng, n_l)
@@ -56,7 +35,7 @@ def test_chunked_update_is_the_dense_joseph_form_chunk_by_chunk(rng, n_l, k, bat
     z = _observations(rng, mu, js)
     mu_ref, P_ref = mu.copy(), P.copy()
     for c in range(0, k, batch):
-        mu_ref, P_ref = _dense_joseph(mu_ref, P_ref, js[c:c + batch], z[c:c + batch])
+        mu_ref, P_ref = dense_joseph(mu_ref, P_ref, js[c:c + batch], z[c:c + batch], R)
     mu_new, P_new = mu.copy(), P.copy()
     out_mu, out_P = ekf_update_range_bearing_batches(mu_new, P_new, js, z, R, batch=batch)
     assert out_mu is mu_new and out_P is P_new  # in place

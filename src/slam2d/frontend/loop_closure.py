@@ -110,16 +110,21 @@ class LoopCloser:
         order (at most the last one accepted). The observations become a keyframe afterwards if ``add_keyframe``."""
         out: list[LoopCandidate] = []
         for a in self.propose(key, points):
-            hyp = self.verify(a, points, covs)
-            if hyp is None:
+            cand = self._check(a, key, points, covs, pose_of, joint_cov)
+            if cand is None:
                 continue
-            cand = self.gate(a, key, hyp, pose_of(a), pose_of(key), joint_cov(a, key))
             out.append(cand)
             if cand.accepted:
                 break
         if add_keyframe:
             self.add_keyframe(key, points, covs)
         return out
+
+    def _check(self, a: int, b: int, points: Array, covs: Array, pose_of: Callable[[int], Array],
+               joint_cov: Callable[[int, int], Array]) -> LoopCandidate | None:
+        """Verify keyframe ``a`` against the observations at ``b`` and gate the result (None: not verified)."""
+        hyp = self.verify(a, points, covs)
+        return None if hyp is None else self.gate(a, b, hyp, pose_of(a), pose_of(b), joint_cov(a, b))
 
     def queue(self, key: int, points: Array, covs: Array) -> int:
         """Store the observations at pose ``key`` as a keyframe and queue its candidates (best first) for
@@ -137,11 +142,9 @@ class LoopCloser:
         out: list[LoopCandidate] = []
         for _ in range(min(budget, len(self.queued))):
             a, b = self.queued.popleft()
-            points, covs = self.keyframes[b]
-            hyp = self.verify(a, points, covs)
-            if hyp is None:
+            cand = self._check(a, b, *self.keyframes[b], pose_of, joint_cov)
+            if cand is None:
                 continue
-            cand = self.gate(a, b, hyp, pose_of(a), pose_of(b), joint_cov(a, b))
             out.append(cand)
             if cand.accepted:
                 self.queued = deque((p for p in self.queued if p[1] != b), maxlen=MAX_QUEUED)

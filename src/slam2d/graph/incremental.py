@@ -130,13 +130,19 @@ class IncrementalPoseGraph:
                               robust_param=c.loop_kernel_scale)
         return g
 
-    def _solve_local(self, t: int, loops: NDArray[np.int64]) -> None:
+    def _local_region(self, t: int, loops: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """The poses a local solve frees (the newest ``window`` and a neighbourhood of each old loop end) and the
+        edges touching them."""
         c = self.config
         free = set(range(max(0, t - c.window), t + 1))
         for a in loops:
             free.update(range(max(0, int(a) - c.loop_neighbourhood), min(t, int(a) + c.loop_neighbourhood) + 1))
         free_arr = np.array(sorted(free), dtype=np.int64)
-        edges = np.unique(np.concatenate([np.asarray(self._adj[p], np.int64) for p in free_arr]))
+        return free_arr, np.unique(np.concatenate([np.asarray(self._adj[p], np.int64) for p in free_arr]))
+
+    def _solve_local(self, t: int, loops: NDArray[np.int64]) -> None:
+        c = self.config
+        free_arr, edges = self._local_region(t, loops)
         touched = np.unique(np.concatenate([self._ei[edges], self._ej[edges]]))
         fixed = np.setdiff1d(touched, free_arr)
         if fixed.size == 0:

@@ -134,11 +134,7 @@ class MarkerPoseGraph(IncrementalPoseGraph):
             super()._solve_local(t, loops)
             return
         c = self.config
-        free = set(range(max(0, t - c.window), t + 1))
-        for a in loops:
-            free.update(range(max(0, int(a) - c.loop_neighbourhood), min(t, int(a) + c.loop_neighbourhood) + 1))
-        free_arr = np.array(sorted(free), dtype=np.int64)
-        edges = np.unique(np.concatenate([np.asarray(self._adj[p], np.int64) for p in free_arr]))
+        free_arr, edges = self._local_region(t, loops)
         # every marker a free keyframe read is free; all its readings enter (the old readers held fixed)
         slots = sorted({self._o_slot[o] for p in free_arr.tolist() for o in self._of_pose.get(p, [])})
         obs = np.asarray(sorted(o for s in slots for o in self._of_slot[s]), np.int64)
