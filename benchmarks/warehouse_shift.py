@@ -91,12 +91,8 @@ def aligned_errors(est: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 
 def survey(sim: Simulator, sigma_m: float, seed: int) -> tuple[tuple[int, float, float], ...]:
-    """The world's floor markers as a survey would give them: (id, x, y), each position off the truth by a normal
-    draw of ``sigma_m`` per axis (its own generator: the simulator's streams are untouched). Empty without
-    markers."""
-    true = sim.world.floor_markers
-    xy = true + np.random.default_rng([seed, 17]).normal(0.0, sigma_m, true.shape)
-    return tuple((i, float(x), float(y)) for i, (x, y) in enumerate(xy.tolist()))
+    """The survey drawn from its own generator (the simulator's streams are untouched)."""
+    return sim.world.marker_survey(sigma_m, np.random.default_rng([seed, 17]))
 
 
 def main() -> None:

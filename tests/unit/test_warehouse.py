@@ -274,3 +274,14 @@ def test_a_streaming_simulator_yields_the_same_steps_and_keeps_no_log():
     assert live.record is False and live._rec["scan"] == []
     with pytest.raises(ValueError, match="record=False"):
         live.to_log()
+
+
+def test_a_marker_survey_is_the_truth_off_by_its_sigma_and_repeats_per_generator():
+    world = Simulator(_cfg(floor_markers=True)).world
+    a = world.marker_survey(0.01, np.random.default_rng(3))
+    assert [r[0] for r in a] == list(range(len(world.floor_markers))) and len(a) >= 4
+    err = np.array([r[1:] for r in a]) - world.floor_markers
+    assert 0.005 < err.std() < 0.02
+    again, other = (world.marker_survey(0.01, np.random.default_rng(s)) for s in (3, 4))
+    assert a == again != other
+    assert Simulator(_cfg()).world.marker_survey(0.01, np.random.default_rng(0)) == ()

@@ -77,6 +77,12 @@ class World:
     """(xmin, ymin, xmax, ymax) of the area the world occupies (m)."""
     floor_markers: Array = field(default_factory=lambda: np.zeros((0, 2)))
 
+    def marker_survey(self, sigma_m: float, rng: np.random.Generator) -> tuple[tuple[int, float, float], ...]:
+        """The floor markers as a survey of the floor would give them: (id, x, y), each position off the truth by a
+        normal draw of ``sigma_m`` per axis. Empty without markers."""
+        xy = self.floor_markers + rng.normal(0.0, sigma_m, self.floor_markers.shape)
+        return tuple((i, float(x), float(y)) for i, (x, y) in enumerate(xy.tolist()))
+
     @cached_property
     def _fleet(self) -> dict[str, Array]:
         """Every moving object's path padded to the longest one, so all of them are placed in one pass."""
