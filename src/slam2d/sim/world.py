@@ -181,13 +181,14 @@ class World:
 
 
 def segment_distances(p: Array, segments: Array) -> Array:
-    """Distance from point ``p`` (2,) to each segment (W,4) -> (W,)."""
+    """Distance from points ``p`` (..., 2) to each segment (W,4) -> (..., W)."""
     a, b = segments[:, :2], segments[:, 2:]
     ab = b - a
     den = np.maximum(np.sum(ab * ab, axis=1), 1e-18)
-    t = np.clip(np.sum((p - a) * ab, axis=1) / den, 0.0, 1.0)
-    q = a + t[:, None] * ab
-    return np.hypot(p[0] - q[:, 0], p[1] - q[:, 1])
+    ap = np.asarray(p, dtype=np.float64)[..., None, :] - a
+    t = np.clip(np.sum(ap * ab, axis=-1) / den, 0.0, 1.0)
+    d = ap - t[..., None] * ab
+    return np.hypot(d[..., 0], d[..., 1])
 
 
 def box_walls(x0: float, y0: float, x1: float, y1: float) -> Array:
