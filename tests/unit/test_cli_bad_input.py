@@ -152,6 +152,17 @@ CASES: list[tuple[str, str, str]] = [
     ("run", "run --scenario room --estimator lidar --map-out {file}", "afile"),
     ("run", "run --scenario room --estimator lidar --map-out {dir}", "directory"),
     ("run", "run --scenario room --estimator ekf --map-out {d}/m.db", "lidar"),
+    # floor-marker surveys (read before the run starts; file:line named)
+    ("run", "run --scenario room --estimator lidar --marker-survey {survey}", "lidar-lifelong"),
+    ("run", "run --scenario room --estimator lidar-lifelong --marker-survey {file}", "afile:1"),
+    ("run", "run --scenario room --estimator lidar-lifelong --marker-survey {d}/missing.csv", "missing.csv"),
+    ("run", "run --scenario room --estimator lidar-lifelong --marker-survey {dir}", "adir"),
+    ("run", "run --scenario room --estimator lidar-lifelong --marker-survey /dev/zero", "/dev/zero"),
+    ("simulate", "simulate --out {d}/s.npz --set steps=3 --marker-survey {d}/s.csv", "no floor markers"),
+    ("simulate", "simulate --out {d}/s.npz --set steps=3 --marker-survey {dir}", "directory"),
+    ("simulate", "simulate --out {d}/s.npz --set steps=3 --marker-survey {file}/s.csv", "not a directory"),
+    ("simulate", "simulate --out {d}/s.npz --set steps=3 --survey-sigma nan", "--survey-sigma"),
+    ("simulate", "simulate --out {d}/s.npz --set steps=3 --survey-sigma -1", "--survey-sigma"),
 ]
 
 
@@ -172,11 +183,13 @@ def scratch(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
     (d / "afile").write_text("just some text\n")
     (d / "g.g2o").write_text(G2O)
     (d / "sweep.toml").write_text(TOML)
+    (d / "survey.csv").write_text("id,x,y\n0,1.0,2.0\n")
     assert main(["simulate", "--out", str(d / "log.npz"), "--set", "steps=5"]) == 0
     (d / "res").mkdir()
     (d / "res" / "results.jsonl").write_text("")
     return {"d": str(d), "dir": str(d / "adir"), "file": str(d / "afile"), "g2o": str(d / "g.g2o"),
-            "log": str(d / "log.npz"), "toml": str(d / "sweep.toml"), "res": str(d / "res")}
+            "survey": str(d / "survey.csv"), "log": str(d / "log.npz"), "toml": str(d / "sweep.toml"),
+            "res": str(d / "res")}
 
 
 @pytest.mark.parametrize(("command", "template", "mention"), CASES, ids=[c[1] for c in CASES])

@@ -78,10 +78,8 @@ class World:
     floor_markers: Array = field(default_factory=lambda: np.zeros((0, 2)))
 
     def marker_survey(self, sigma_m: float, rng: np.random.Generator) -> tuple[tuple[int, float, float], ...]:
-        """The floor markers as a survey of the floor would give them: (id, x, y), each position off the truth by a
-        normal draw of ``sigma_m`` per axis. Empty without markers."""
-        xy = self.floor_markers + rng.normal(0.0, sigma_m, self.floor_markers.shape)
-        return tuple((i, float(x), float(y)) for i, (x, y) in enumerate(xy.tolist()))
+        """The floor markers as a survey of the floor would give them (:func:`marker_survey`)."""
+        return marker_survey(self.floor_markers, sigma_m, rng)
 
     @cached_property
     def _fleet(self) -> dict[str, Array]:
@@ -178,6 +176,13 @@ class World:
         if not self.moving:
             return np.zeros((0, 2))
         return self._fleet_state(time_s)[0]
+
+
+def marker_survey(markers: Array, sigma_m: float, rng: np.random.Generator) -> tuple[tuple[int, float, float], ...]:
+    """True floor markers (M,2) (marker ``i`` has id ``i``) as a survey of the floor would give them: (id, x, y),
+    each position off the truth by a normal draw of ``sigma_m`` per axis. Empty without markers."""
+    xy = markers + rng.normal(0.0, sigma_m, markers.shape)
+    return tuple((i, float(x), float(y)) for i, (x, y) in enumerate(xy.tolist()))
 
 
 def segment_distances(p: Array, segments: Array) -> Array:
