@@ -143,10 +143,11 @@ class RelocaliseConfig:
     """spread of the rival search's coarse likelihood field (m): about its cell and heading step."""
     rival_reach_m: float = 10.0
     """evidence points farther than this from the robot are left out of the rival search (m)."""
-    rival_count: int = 6
+    rival_count: int = 10
     """rivals (best distinct coarse peaks) refined on the window and added to the hypotheses."""
     rival_every: int = 4
-    """evidence scans between two rival searches (the rivals found are tracked as hypotheses meanwhile)."""
+    """evidence scans between two rival searches (the rivals found are tracked as hypotheses meanwhile; a winner
+    with no distinct hypothesis left is always searched)."""
     robust_objects: int = 3
     """without a floor-marker confirmation the winner must beat every distinct hypothesis by ``accept_margin``
     even after the ``robust_objects`` places (cells of ``robust_cell_m``) that favour it most are left out: in a
@@ -383,8 +384,9 @@ class Relocaliser:
         assert self._search is not None
         self.rival_searches += 1
         pts = self._window_points()
+        # one peak per 2 x distinct_xy_m: a corridor's slides along itself do not fill the list
         peaks = self._search.best(pts, np.full(len(pts), cfg.scan_weight), cfg.rival_count + 1,
-                                  cfg.merge_xy_m * 2, cfg.merge_theta_rad * 2)[:, :3]
+                                  2 * cfg.distinct_xy_m, cfg.distinct_theta_rad)[:, :3]
         d = se2.between(best[None], peaks)
         far = (np.hypot(d[:, 0], d[:, 1]) > cfg.distinct_xy_m) | (np.abs(d[:, 2]) > cfg.distinct_theta_rad)
         peaks = peaks[far][: cfg.rival_count]
@@ -545,7 +547,8 @@ class Relocaliser:
         if n_ev < cfg.min_evidence or margin < cfg.accept_margin or self._icp_target is None \
                 or not self._marker_confirmed(best):
             return RelocaliseStatus(False, best.copy(), margin, len(self.hyp), n_ev)
-        if self._search is not None and self.evidence_count - self._searched_at >= cfg.rival_every:
+        if self._search is not None and (self.evidence_count - self._searched_at >= cfg.rival_every
+                                         or not np.isfinite(margin)):
             self._searched_at = self.evidence_count
             # the rivals join the hypotheses (tracked from now on); the winner must beat them too
             rivals = self._rivals(best)
