@@ -14,6 +14,11 @@ from the saved map at random unknown poses and must relocalise.
    with map layers (flights 2 and 3 localise against the saved static layer and update it; their maps keep the
    saved one's cell lattice); ``lidar`` re-draws each flight's map from its keyframe scans.
 
+Errors of accepted poses are given against the truth and in the map's frame (:func:`map_frame`: flight 1 draws the
+map with its own drift, about half a degree here, which no relocaliser can see). ``--markers surveyed`` (lifelong
+sessions only) hands the sessions the floor markers' surveyed positions (``World.marker_survey``, 1 cm per axis):
+each reading corrects the pose, so the map is drawn in the survey's frame.
+
 Default world (state it with the numbers): 40 x 30 m, 3 aisles, 1 cross-aisle, 40 pallets, 2 forklifts, 10 Hz
 (``dt_s=0.1``), the challenge's 360-beam 30 m lidar; the full 100 x 100 m world is ``--full`` (20 forklifts, 600
 pallets, 30 Hz stepped with the lidar every 3rd step; hours on this machine, not run here).
@@ -38,7 +43,7 @@ from slam2d.graph.lidar_session import LidarSession, LidarSessionConfig
 from slam2d.lab.runner import run
 from slam2d.maps.store import MapSnapshot
 from slam2d.sim.scenarios import ScenarioConfig
-from slam2d.sim.simulator import simulate, spawn_streams
+from slam2d.sim.simulator import Simulator, simulate, spawn_streams
 
 SMALL = {"warehouse.width_m": "40", "warehouse.depth_m": "30", "warehouse.aisles": "3",
          "warehouse.cross_aisles": "1", "warehouse.pallets": "40", "moving_objects": "2", "dt_s": "0.1",
@@ -109,10 +114,24 @@ def changes(a: MapSnapshot, b: MapSnapshot, walls_a: np.ndarray, walls_b: np.nda
             "new_pallet_cells_in_static": len(segment_cells(came, res) & cb) / max(len(segment_cells(came, res)), 1)}
 
 
-def session(cfg: ScenarioConfig, seed: int, prior: MapSnapshot | None, world: str,
-            lifelong: bool) -> tuple[LidarSession, float, np.ndarray]:
+def map_frame(estimated: np.ndarray, true: np.ndarray) -> np.ndarray:
+    """The rigid transform (x, y, theta) that takes the simulator's frame to the map's: least squares over the
+    positions of flight 1's estimated and true trajectories. A saved map is drawn with flight 1's drift (about half
+    a degree of heading here), so a pose can be right in the map and off against the truth; "map-frame error" is the
+    error against the truth carried into the map's frame by this transform."""
+    a, b = true[:, :2], estimated[:, :2]
+    ma, mb = a.mean(axis=0), b.mean(axis=0)
+    u, _, vt = np.linalg.svd((b - mb).T @ (a - ma))
+    r = u @ np.diag([1.0, np.linalg.det(u @ vt)]) @ vt
+    return np.array([*(mb - r @ ma), np.arctan2(r[1, 0], r[0, 0])])
+
+
+def session(cfg: ScenarioConfig, seed: int, prior: MapSnapshot | None, world: str, lifelong: bool,
+            survey: tuple[tuple[int, float, float], ...] = (),
+            survey_sigma_m: float = 0.01) -> tuple[LidarSession, float, np.ndarray]:
     log = simulate(cfg, seed)
-    lidar = LifelongLidarConfig() if lifelong else LidarSLAMConfig()
+    lidar = LifelongLidarConfig(surveyed_markers=survey, survey_sigma_m=max(survey_sigma_m, 1e-3)) if lifelong \
+        else LidarSLAMConfig()
     est = LidarSession(LidarSessionConfig(lidar=lidar), prior=prior, world_id=world)
     t0 = time.perf_counter()
     run(est, log, rng=spawn_streams(seed)["estimator"], progress=False)
@@ -121,7 +140,7 @@ def session(cfg: ScenarioConfig, seed: int, prior: MapSnapshot | None, world: st
 
 
 def trials(prior: MapSnapshot, cfg: ScenarioConfig, seed: int, starts: int, budget_s: float,
-           rng: np.random.Generator) -> list[dict[str, Any]]:
+           rng: np.random.Generator, frame: np.ndarray) -> list[dict[str, Any]]:
     log = simulate(cfg, seed)
     steps = list(log)
     n = round(budget_s / float(log.metadata["config"]["dt_s"]))
@@ -139,6 +158,8 @@ def trials(prior: MapSnapshot, cfg: ScenarioConfig, seed: int, starts: int, budg
                     row.update(decided=True, time_s=st.time_s - steps[s].time_s + float(st.dt_s),
                                error_m=float(np.hypot(e[0], e[1])), error_deg=float(np.degrees(abs(e[2]))))
                     row["wrong"] = row["error_m"] > WRONG_M or row["error_deg"] > WRONG_DEG
+                    em = se2.local(se2.compose(frame, log.true_poses[st.index]), status.pose)
+                    row.update(map_error_m=float(np.hypot(em[0], em[1])), map_error_deg=float(np.degrees(abs(em[2]))))
                     break
             row["cpu_s"] = time.perf_counter() - t0
             row["hypotheses_first"] = rel.history[0]["hypotheses"] if rel.history else 0
@@ -154,6 +175,9 @@ def summarise(rows: list[dict[str, Any]], markers: bool) -> dict[str, Any]:
             "decide_s_median": float(np.median([x["time_s"] for x in ok])) if ok else float("nan"),
             "decide_s_max": float(np.max([x["time_s"] for x in ok])) if ok else float("nan"),
             "error_m_max": float(np.max([x["error_m"] for x in ok])) if ok else float("nan"),
+            "error_m_median": float(np.median([x["error_m"] for x in ok])) if ok else float("nan"),
+            "map_error_m_median": float(np.median([x["map_error_m"] for x in ok])) if ok else float("nan"),
+            "map_error_deg_median": float(np.median([x["map_error_deg"] for x in ok])) if ok else float("nan"),
             "cpu_s_per_start": float(np.mean([x["cpu_s"] for x in r])) if r else float("nan")}
 
 
@@ -170,7 +194,14 @@ def main() -> None:
                     help="the sessions' back end: lidar (keyframe scans, loops; the map is re-drawn from the "
                          "keyframes) or lidar-lifelong (map layers: flights 2 and 3 localise against the saved "
                          "static layer and update it)")
+    ap.add_argument("--markers", choices=("read", "surveyed"), default="read",
+                    help="floor markers: read (the sessions map the markers they read; the relocaliser uses that "
+                         "layer) or surveyed (the lifelong sessions also get the markers' surveyed positions, true "
+                         "plus --survey-sigma per axis drawn once, and each reading corrects the pose)")
+    ap.add_argument("--survey-sigma", type=float, default=0.01, help="with --markers surveyed: survey error (m)")
     args = ap.parse_args()
+    if args.markers == "surveyed" and args.estimator != "lidar-lifelong":
+        ap.error("--markers surveyed needs --estimator lidar-lifelong (the survey corrects the lifelong mode)")
     base = FULL if args.full else SMALL
     from slam2d.cli.map_session import world_of
 
@@ -179,7 +210,17 @@ def main() -> None:
           f"seed {args.seed}, {args.starts} random starts per flight, {args.budget_s:.0f} s of motion each")
     lifelong = args.estimator == "lidar-lifelong"
     print(f"sessions: --estimator {args.estimator}")
-    est1, t1, walls = session(scenario(base, 0), args.seed, None, world, lifelong)
+    survey: tuple[tuple[int, float, float], ...] = ()
+    if args.markers == "surveyed":
+        sim = Simulator(scenario(base, 0), seed=args.seed, record=False)
+        survey = sim.world.marker_survey(args.survey_sigma, np.random.default_rng([args.seed, 17]))
+        print(f"floor markers: {len(survey)} surveyed (survey error {100 * args.survey_sigma:g} cm per axis)")
+    est1, t1, walls = session(scenario(base, 0), args.seed, None, world, lifelong, survey, args.survey_sigma)
+    traj1 = est1.estimate().trajectory
+    assert traj1 is not None
+    frame = map_frame(traj1, simulate(scenario(base, 0), args.seed).true_poses[: len(traj1)])
+    print(f"the map's frame against the simulator's: {frame[0]:+.3f} m, {frame[1]:+.3f} m, "
+          f"{np.degrees(frame[2]):+.3f} deg (flight 1's drift; map-frame errors below are against it)")
     maps = [est1.snapshot()]
     if args.maps_dir:
         est1.save_map(f"{args.maps_dir}/flight1.db")
@@ -187,15 +228,17 @@ def main() -> None:
     print(f"flight 1 (cold start): {t1:.0f} s; map {c['keyframes']} keyframes, {c['edges']} edges, "
           f"{c['occupancy_cells']} cells, {int(np.isfinite(maps[0].layers['floor_markers'][:, 0]).sum())} markers")
     rng = np.random.default_rng(args.seed)
-    table, record = [], {"world": base, "estimator": args.estimator, "trials": {}, "iou": {}, "changes": {}}
+    table, record = [], {"world": base, "estimator": args.estimator, "markers": args.markers, "trials": {},
+                         "iou": {}, "changes": {}}
     for flight in (1, 2):
         if not args.skip_trials:
-            rows = trials(maps[-1], scenario(base, flight), args.seed, args.starts, args.budget_s, rng)
+            rows = trials(maps[-1], scenario(base, flight), args.seed, args.starts, args.budget_s, rng, frame)
             record["trials"][flight + 1] = rows
             for markers in (True, False):
                 table.append({"flight": flight + 1, "markers": "yes" if markers else "no",
                               **summarise(rows, markers)})
-        est, t, walls_next = session(scenario(base, flight), args.seed, maps[-1], world, lifelong)
+        est, t, walls_next = session(scenario(base, flight), args.seed, maps[-1], world, lifelong, survey,
+                                     args.survey_sigma)
         if not est.relocalised:
             print(f"flight {flight + 1} session never relocalised; no map to compare")
             break
@@ -213,10 +256,11 @@ def main() -> None:
               f"({ch['removed_on_old_pallets']:.0%} on an old one); {ch['new_pallet_cells_in_static']:.0%} of the "
               "new pallet faces' cells are static")
     cols = ["flight", "markers", "starts", "success", "success_rate", "wrong", "undecided", "decide_s_median",
-            "decide_s_max", "error_m_max", "cpu_s_per_start"]
-    print("  ".join(f"{c:>15s}" for c in cols))
+            "decide_s_max", "error_m_max", "error_m_median", "map_error_m_median", "map_error_deg_median",
+            "cpu_s_per_start"]
+    print("  ".join(f"{c:>20s}" for c in cols))
     for row in table:
-        print("  ".join(f"{row[c]:>15.3f}" if isinstance(row[c], float) else f"{row[c]!s:>15s}" for c in cols))
+        print("  ".join(f"{row[c]:>20.3f}" if isinstance(row[c], float) else f"{row[c]!s:>20s}" for c in cols))
     if args.json:
         with open(args.json, "w") as fh:
             json.dump({**record, "table": table}, fh, indent=1, default=float)

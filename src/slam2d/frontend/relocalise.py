@@ -22,17 +22,24 @@ the same evidence as old ones. All of it is one array operation over (hypotheses
 
 Decision: the best hypothesis is accepted only when (1) at least ``min_evidence`` scans are in the window, (2) its
 score beats every *distinct* hypothesis (farther than ``distinct_xy_m`` / ``distinct_theta_rad``) by
-``accept_margin``, (3) a verification passes: ICP of the current scan against the map's occupied cells converges
-near it with enough inliers, and (4) when the map has floor markers and they are in use (``require_marker``), a
-marker reading in the window agrees with it. Otherwise the status is "undecided" and it keeps trying (new
-candidates are injected every ``inject_every`` evidence scans). In a perfectly symmetric place two hypotheses keep
-equal scores and nothing is ever accepted. Scans alone are not proof: in the small benchmark warehouse (half-turn
-symmetric racks, forklifts, moved pallets) 1 start in 20 per flight accepted the mirror-image place without
-markers; with markers and rule (4), none did (``benchmarks/warehouse_flights.py``).
+``accept_margin``, (3) when the map has floor markers and they are in use (``require_marker``), a marker reading in
+the window agrees with it, (4) the rival check passes: an exhaustive search of the whole map for the best
+explanations of the evidence window (:mod:`slam2d.frontend.relocalise_search`; the tracked hypotheses came from
+descriptors and markers, so a mirror-image place no candidate seeded was simply missing and rule (2) held
+trivially) adds its best distinct peaks, refined on the window, to the hypotheses, and the winner must still lead
+them by ``accept_margin``, (5) without a marker confirming it, the lead must survive leaving out the
+``robust_objects`` places (``robust_cell_m`` cells) that favour the winner most: in a self-similar warehouse two
+places differ by pallets and forklifts, which is what moves between flights, and (6) a verification passes: ICP of
+the current scan against the map's occupied cells converges near it with enough inliers. Otherwise the status is
+"undecided" and it keeps trying (new candidates are injected every ``inject_every`` evidence scans). In a perfectly
+symmetric place two hypotheses keep equal scores and nothing is ever accepted. Measured on the small benchmark
+warehouse (half-turn symmetric racks, forklifts, moved pallets; ``benchmarks/warehouse_flights.py``): rules (1)-(3)
+and (6) alone accepted the mirror-image place in 1 and 3 of 20 starts without markers; with (4) and (5), none.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,6 +48,7 @@ from scipy import ndimage
 
 from slam2d.config import check_positive
 from slam2d.frontend.icp import ICPConfig, icp, prepare_target
+from slam2d.frontend.relocalise_search import CorrelativeSearch
 from slam2d.geometry import se2
 from slam2d.geometry.angles import wrap_angle
 from slam2d.log import Step
@@ -130,15 +138,41 @@ class RelocaliseConfig:
     icp: ICPConfig = field(default_factory=lambda: ICPConfig(max_correspondence_m=0.4, trim_fraction=0.8,
                                                              tolerance=1e-4))
     """verification scan matcher."""
+    rival_search: bool = True
+    """before accepting, search the whole map for the best distinct explanation of the evidence window
+    (:mod:`slam2d.frontend.relocalise_search`) and accept only if the winner beats it by ``accept_margin`` too."""
+    rival_cell_m: float = 0.2
+    """cell of the rival search's position grid (m; a multiple of the map's cell is used)."""
+    rival_headings: int = 180
+    """headings of the rival search (evenly spaced)."""
+    rival_sigma_m: float = 0.3
+    """spread of the rival search's coarse likelihood field (m): about its cell and heading step."""
+    rival_reach_m: float = 10.0
+    """evidence points farther than this from the robot are left out of the rival search (m)."""
+    rival_count: int = 10
+    """rivals (best distinct coarse peaks) refined on the window and added to the hypotheses."""
+    rival_every: int = 4
+    """evidence scans between two rival searches (the rivals found are tracked as hypotheses meanwhile; a winner
+    with no distinct hypothesis left is always searched)."""
+    robust_objects: int = 3
+    """without a floor-marker confirmation the winner must beat every distinct hypothesis by ``accept_margin``
+    even after the ``robust_objects`` places (cells of ``robust_cell_m``) that favour it most are left out: in a
+    self-similar warehouse the places differ by pallets and forklifts, exactly what moves between flights, so a
+    win that rests on a few objects is no proof (0: off)."""
+    robust_cell_m: float = 2.0
+    """size of the places of ``robust_objects`` (m, about a pallet bay)."""
+    robust_rivals: int = 20
+    """distinct hypotheses (best first) the robust margin is checked against."""
 
     def __post_init__(self) -> None:
         check_positive(self, "sigma_m", "likelihood_floor", "scan_weight", "evidence_every_m", "evidence_every_rad",
                        "accept_margin", "distinct_xy_m", "distinct_theta_rad", "merge_xy_m", "merge_theta_rad",
                        "prune_margin", "offset_step_m", "through_margin_m", "marker_std_m", "refine_step_m",
-                       "refine_step_rad",
+                       "refine_step_rad", "rival_cell_m", "rival_sigma_m", "rival_reach_m", "robust_cell_m",
                        "verify_min_fitness", "verify_max_shift_m", "verify_max_turn_rad")
         for n in ("beams", "window", "min_evidence", "max_hypotheses", "descriptor_candidates", "heading_peaks",
-                  "marker_headings", "inject_every", "refine_rounds"):
+                  "marker_headings", "inject_every", "refine_rounds",
+                  "rival_headings", "rival_count", "robust_rivals", "rival_every"):
             if getattr(self, n) < 1:
                 raise ValueError(f"RelocaliseConfig.{n} must be >= 1 (got {getattr(self, n)})")
         if self.min_evidence > self.window:
@@ -147,6 +181,8 @@ class RelocaliseConfig:
             raise ValueError("RelocaliseConfig.occupied_probability must be in (0, 1)")
         if self.through_penalty < 0:
             raise ValueError("RelocaliseConfig.through_penalty must be >= 0")
+        if self.robust_objects < 0:
+            raise ValueError("RelocaliseConfig.robust_objects must be >= 0")
         if self.marker_floor >= 0:
             raise ValueError("RelocaliseConfig.marker_floor must be < 0")
 
@@ -228,6 +264,14 @@ class Relocaliser:
         self.rng = rng  # candidate generation is deterministic today; kept for subsampling ties
         self.field = LikelihoodField(snapshot, cfg)
         self._icp_target = prepare_target(self.field.points, cfg.icp) if len(self.field.points) else None
+        f = self.field
+        self._search = CorrelativeSearch(
+            f.occupied, f.origin, f.res, coarse_m=cfg.rival_cell_m, sigma_m=cfg.rival_sigma_m,
+            floor=cfg.likelihood_floor, reach_m=cfg.rival_reach_m, headings=cfg.rival_headings) \
+            if cfg.rival_search and f.occupied.any() else None
+        self.rival_searches = 0
+        self._searched_at = -(10**9)  # evidence count of the last rival search
+        self.robust_margin = float("nan")  # of the last decision that reached the robust check
         markers = snapshot.layers.get("floor_markers")
         self.markers = None if markers is None else np.asarray(markers, dtype=np.float64).reshape(-1, 2)
         self.kf_poses = snapshot.keyframe_poses
@@ -318,16 +362,44 @@ class Relocaliser:
 
     def _refine(self, poses: Array, pts: Array, ok: NDArray[np.bool_]) -> Array:
         """Hill-climb every pose on one scan: the best of 27 moves per round, steps halved each round."""
+        return self._climb(poses, lambda c: self._scan_score(c, pts, ok), self.config.refine_rounds)
+
+    def _climb(self, poses: Array, score: Callable[[Array], Array], rounds: int) -> Array:
+        """Hill-climb poses (H,3) on ``score`` ((..., 3) -> (...)): the best of 27 moves a round, steps halved."""
         cfg = self.config
         g = np.array(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij")).reshape(3, -1).T
         step = np.array([cfg.refine_step_m, cfg.refine_step_m, cfg.refine_step_rad])
-        for _ in range(cfg.refine_rounds):
+        for _ in range(rounds):
             cand = poses[:, None, :] + (g * step)[None]  # (H, 27, 3)
-            best = np.argmax(self._scan_score(cand, pts, ok), axis=1)
+            best = np.argmax(score(cand), axis=1)
             poses = cand[np.arange(len(poses)), best]
             step = step / 2
         poses[:, 2] = wrap_angle(poses[:, 2])
         return poses
+
+    def _window_points(self) -> Array:
+        """Every valid point of the evidence window in the robot frame now (each scan placed by the odometry)."""
+        rel = se2.between(self.odo[None], np.asarray(self._ev_odo))  # (W,3): evidence pose in the frame now
+        w = se2.transform_points(rel[:, None, :], np.asarray(self._ev_pts))  # (W,B,2)
+        return w[np.asarray(self._ev_ok)]
+
+    def _rivals(self, best: Array) -> Array:
+        """The best explanations of the evidence window anywhere in the map that are distinct from ``best``:
+        coarse peaks of the exhaustive search, hill-climbed on the whole window (see ``rival_search``)."""
+        cfg = self.config
+        assert self._search is not None
+        self.rival_searches += 1
+        pts = self._window_points()
+        # one peak per 2 x distinct_xy_m: a corridor's slides along itself do not fill the list
+        peaks = self._search.best(pts, np.full(len(pts), cfg.scan_weight), cfg.rival_count + 1,
+                                  2 * cfg.distinct_xy_m, cfg.distinct_theta_rad)[:, :3]
+        d = se2.between(best[None], peaks)
+        far = (np.hypot(d[:, 0], d[:, 1]) > cfg.distinct_xy_m) | (np.abs(d[:, 2]) > cfg.distinct_theta_rad)
+        peaks = peaks[far][: cfg.rival_count]
+        if not len(peaks):
+            return peaks
+        return self._climb(peaks, lambda c: self._window_score(c.reshape(-1, 3)).reshape(c.shape[:-1]),
+                           cfg.refine_rounds + 1)
 
     def _window_score(self, hyp: Array) -> Array:
         """Score of every hypothesis on the whole evidence window (and the buffered marker readings)."""
@@ -423,6 +495,13 @@ class Relocaliser:
         cfg = self.config
         if not (cfg.use_markers and cfg.require_marker and self.markers is not None):
             return True
+        return self._marker_agrees(best)
+
+    def _marker_agrees(self, best: Array) -> bool:
+        """Does a buffered marker reading agree with ``best`` (within 3 sigma)?"""
+        cfg = self.config
+        if not cfg.use_markers or self.markers is None:
+            return False
         t_map_session = se2.compose(best, se2.inverse(self.odo))
         for _, pose_j, xy, ids in self._mk:
             known = (ids >= 0) & (ids < len(self.markers))
@@ -433,19 +512,64 @@ class Relocaliser:
                 return True
         return False
 
+    def _margin(self) -> float:
+        """Score of the best hypothesis minus the best distinct one's (inf when there is none)."""
+        cfg = self.config
+        d = se2.between(self.hyp[0][None], self.hyp[1:]) if len(self.hyp) > 1 else np.zeros((0, 3))
+        distinct = (np.hypot(d[:, 0], d[:, 1]) > cfg.distinct_xy_m) | (np.abs(d[:, 2]) > cfg.distinct_theta_rad)
+        rival = self.score[1:][distinct]
+        return float(self.score[0] - rival.max()) if rival.size else float("inf")
+
+    def _robust_margin(self) -> float:
+        """The best hypothesis' lead over the distinct ones when the ``robust_objects`` places that favour it most
+        are left out (the minimum over the ``robust_rivals`` best distinct hypotheses; inf when there is none)."""
+        cfg = self.config
+        d = se2.between(self.hyp[0][None], self.hyp[1:])
+        distinct = np.flatnonzero((np.hypot(d[:, 0], d[:, 1]) > cfg.distinct_xy_m)
+                                  | (np.abs(d[:, 2]) > cfg.distinct_theta_rad))[: cfg.robust_rivals] + 1
+        if not len(distinct):
+            return float("inf")
+        hyp = self.hyp[np.concatenate([[0], distinct])]
+        t_map_session = se2.compose(hyp, se2.inverse(self.odo))  # (R+1,3)
+        poses = se2.compose(t_map_session[:, None, :], np.asarray(self._ev_odo)[None])  # (R+1,W,3)
+        w = se2.transform_points(poses[..., None, :], np.asarray(self._ev_pts)[None])  # (R+1,W,B,2)
+        ll = cfg.scan_weight * self.field(w) * np.asarray(self._ev_ok)[None]
+        lead = (ll[0][None] - ll[1:]).reshape(len(distinct), -1)  # (R, W*B) per beam, in the winner's favour
+        cell = np.floor(w[0].reshape(-1, 2) / cfg.robust_cell_m).astype(np.int64)
+        _, place = np.unique(cell, axis=0, return_inverse=True)
+        n = int(place.max()) + 1
+        rows = np.arange(len(distinct))[:, None] * n + place.ravel()[None]
+        per = np.bincount(rows.ravel(), lead.ravel(), minlength=len(distinct) * n).reshape(len(distinct), n)
+        per = -np.sort(-per, axis=1)
+        return float(per[:, cfg.robust_objects:].sum(axis=1).min())
+
     def _decide(self, step: Step, ranges: Array, angles: Array, max_range: float) -> RelocaliseStatus:
         cfg = self.config
         n_ev = len(self._ev_odo)
         if not len(self.hyp):
             return RelocaliseStatus(False, None, 0.0, 0, n_ev)
         best = self.hyp[0]
-        d = se2.between(best[None], self.hyp[1:]) if len(self.hyp) > 1 else np.zeros((0, 3))
-        distinct = (np.hypot(d[:, 0], d[:, 1]) > cfg.distinct_xy_m) | (np.abs(d[:, 2]) > cfg.distinct_theta_rad)
-        rival = self.score[1:][distinct]
-        margin = float(self.score[0] - rival.max()) if rival.size else float("inf")
+        margin = self._margin()
         if n_ev < cfg.min_evidence or margin < cfg.accept_margin or self._icp_target is None \
                 or not self._marker_confirmed(best):
             return RelocaliseStatus(False, best.copy(), margin, len(self.hyp), n_ev)
+        if self._search is not None and (self.evidence_count - self._searched_at >= cfg.rival_every
+                                         or not np.isfinite(margin)):
+            self._searched_at = self.evidence_count
+            # the rivals join the hypotheses (tracked from now on); the winner must beat them too
+            rivals = self._rivals(best)
+            if len(rivals):
+                self.hyp, self.score = self._merge(np.vstack([self.hyp, rivals]),
+                                                   np.concatenate([self.score, self._window_score(rivals)]))
+                margin = self._margin()
+                moved = se2.between(best, self.hyp[0])
+                if margin < cfg.accept_margin or np.hypot(moved[0], moved[1]) > cfg.distinct_xy_m \
+                        or abs(moved[2]) > cfg.distinct_theta_rad:
+                    return RelocaliseStatus(False, self.hyp[0].copy(), margin, len(self.hyp), n_ev)
+        if cfg.robust_objects > 0 and not self._marker_agrees(best):
+            self.robust_margin = self._robust_margin()
+            if self.robust_margin < cfg.accept_margin:
+                return RelocaliseStatus(False, best.copy(), margin, len(self.hyp), n_ev)
         ok = np.isfinite(ranges) & (ranges > 0.05) & (ranges < max_range)
         src = np.stack([ranges[ok] * np.cos(angles[ok]), ranges[ok] * np.sin(angles[ok])], axis=-1)
         res = icp(src, self._icp_target, initial=best, config=cfg.icp)

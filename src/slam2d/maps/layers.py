@@ -15,6 +15,12 @@ enters the static layer from a single glimpse. The exception is the start (``boo
 map, and for 10 s unexplored cells need only ``bootstrap_persist_s``, so that the first map is dense while the pose
 is still good (a forklift caught then may enter, and leaves once it is seen through).
 
+**Wall footprints** (so that two flights draw the same cells): a hit within a static cell's footprint (half a
+cell along its surface, a cell across it, around its mean hit point) is that cell's, not its own, and a beam sees a
+static cell through only where it crosses the cell's surface (within 2.5 cells of its mean point) before its
+guarded end. A wall on a cell boundary is sampled on both sides of it and grazing beams cross the cells beside it;
+without these rules the cells along every wall flickered between flights (benchmarks/warehouse_flights.txt run 4).
+
 **Dynamic layer** (forklifts, pallets not yet persistent): the time each cell was last hit by a point labelled
 dynamic; its occupancy decays as ``exp(-age / dynamic_decay_s)`` (computed when asked: no per-scan sweep of the
 grid), and a beam passing through a cell clears it at once.
@@ -43,7 +49,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from slam2d.config import check_positive
 from slam2d.geometry import se2
+from slam2d.maps.layer_stats import LayerStats, PoseBuffer
 from slam2d.maps.occupancy import OccupancyConfig, OccupancyGrid
+
+__all__ = ["DYNAMIC", "PENDING", "STATIC", "FieldMatch", "LayerStats", "LayersConfig", "MapLayers", "PoseBuffer"]
 
 Array = NDArray[np.float64]
 
@@ -279,7 +288,10 @@ class MapLayers:
             u = d / np.maximum(r, 1e-9)[:, None]
             samples = pose[:2] + (u[:, None, :] * s[None, :, None])[keep]
             miss, ok = self.cell_index(samples)
+            beam = np.broadcast_to(np.arange(len(sub))[:, None], keep.shape)[keep][ok]
             miss = miss[ok]
+            on = st[miss]  # a static cell is seen through only where the beam crosses its surface point
+            miss = np.concatenate([miss[~on], miss[on][self._crossed(pose[:2], d[beam[on]], miss[on])]])
             lo[miss] = np.maximum(lo[miss] - cfg.miss_logodds, cfg.min_logodds)
             gone = miss[st[miss] & (lo[miss] < 0.0)]
             if gone.size:
@@ -289,6 +301,7 @@ class MapLayers:
             self.dyn_seen.ravel()[miss] = -np.inf  # seen through: nothing there now
         # hits: evidence, sighting streaks, promotion
         hit, _ = self.cell_index(world)
+        hit = self._snap(world, hit)
         before = lo[hit]
         fresh = (t - last[hit]) > cfg.max_gap_s
         streak = self.streak.ravel()
@@ -313,6 +326,47 @@ class MapLayers:
         self._since_refresh += 1
         if self._dirty is not None and (bootstrap or self._since_refresh >= cfg.field_refresh_every):
             self.refresh_field()
+
+    def _footprint(self, k: NDArray[np.int64], e: Array, across: float = 0.5) -> NDArray[np.bool_]:
+        """Do offsets ``e`` (K,2) from static cells ``k``'s mean points lie within half a cell of them along the
+        cell's surface and ``across`` cells across it (its normal; the grid axes where it is no line)?"""
+        n = np.where(self.line.ravel()[k][:, None], self.normal.reshape(-1, 2)[k], [1.0, 0.0])
+        res = self.resolution
+        return (np.abs(np.sum(n * e, axis=1)) <= across * res) \
+            & (np.abs(n[:, 0] * e[:, 1] - n[:, 1] * e[:, 0]) <= 0.5 * res)
+
+    def _snap(self, world: Array, hit: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Hits within a static cell's footprint (:meth:`_footprint`) are that cell's, not their own: a wall on a
+        cell boundary is sampled on both sides of it, and without this the cell behind the boundary joins the
+        layer when the pose shifts by a centimetre (the static cells of two flights would differ along every
+        wall)."""
+        k = self.nearest.ravel()[hit].astype(np.int64)
+        cand = (k >= 0) & ~self.static.ravel()[hit]
+        if not cand.any():
+            return hit
+        kc = k[cand]
+        snap = self._footprint(kc, world[cand] - self.cell_centres(kc) - self.mean.reshape(-1, 2)[kc], across=1.0)
+        out = hit.copy()
+        out[np.flatnonzero(cand)[snap]] = kc[snap]
+        return out
+
+    def _crossed(self, origin: Array, beam: Array, cells: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """Do beams from ``origin`` along vectors ``beam`` (K,2) (to their endpoints) pass static ``cells``' (K,)
+        surface before their guarded end: a line cell's line within 2.5 cells of its mean point, a point
+        cell's mean within its footprint? A beam that runs along a wall, or through the cell behind a wall that
+        lies on a cell boundary, meets the surface at its own endpoint: no evidence that the wall has gone."""
+        m = self.cell_centres(cells) + self.mean.reshape(-1, 2)[cells]
+        line = self.line.ravel()[cells]
+        n = np.where(line[:, None], self.normal.reshape(-1, 2)[cells], 0.0)
+        nd = np.sum(n * beam, axis=1)
+        length = np.maximum(np.hypot(beam[:, 0], beam[:, 1]), 1e-12)
+        t_line = np.sum(n * (m - origin), axis=1) / np.where(np.abs(nd) > 1e-12, nd, np.inf)
+        t_point = np.sum(beam * (m - origin), axis=1) / length**2
+        t = np.where(line, np.where(np.abs(nd) > 1e-12, t_line, np.inf), t_point)
+        ok = (t > 0) & (t * length < length - (self.config.endpoint_guard_cells + 0.5) * self.resolution)
+        e = origin + np.clip(t, 0, 1)[:, None] * beam - m
+        along = np.abs(n[:, 0] * e[:, 1] - n[:, 1] * e[:, 0])
+        return ok & np.where(line, along <= 2.5 * self.resolution, self._footprint(cells, e))
 
     def _update_means(self, world: Array, hit: NDArray[np.int64]) -> None:
         """Running mean of the hit points in each cell (the last ``MEAN_CAP`` hits weigh most)."""
@@ -527,43 +581,3 @@ class MapLayers:
     def nbytes(self) -> int:
         """Bytes held by the grids."""
         return sum(getattr(self, n).nbytes for n in self._FILL)
-
-
-@dataclass(frozen=True, slots=True)
-class LayerStats:
-    """Lifelong-mode counters of an estimator: keyframes, cells in the static layer, cells promoted into / demoted
-    out of it so far, points labelled dynamic in the last scan and in all, bytes of the layer grids, tracking
-    failures, floor-marker readings used as pose fixes, floor markers mapped on first sighting (unsurveyed ones)."""
-
-    keyframes: int = 0
-    static_cells: int = 0
-    promoted: int = 0
-    demoted: int = 0
-    dynamic_points_last: int = 0
-    dynamic_points_total: int = 0
-    grid_bytes: int = 0
-    tracking_failures: int = 0
-    marker_fixes: int = 0
-    markers_mapped: int = 0
-
-
-class PoseBuffer:
-    """Poses (3,) appended one at a time into fixed 4096-row blocks: 24 bytes a pose, no per-pose object."""
-
-    BLOCK = 4096
-
-    def __init__(self) -> None:
-        self._blocks: list[Array] = []
-        self._n = 0
-
-    def append(self, pose: Array) -> None:
-        if self._n % self.BLOCK == 0:
-            self._blocks.append(np.empty((self.BLOCK, 3)))
-        self._blocks[-1][self._n % self.BLOCK] = pose
-        self._n += 1
-
-    def __len__(self) -> int:
-        return self._n
-
-    def array(self) -> Array:
-        return np.concatenate(self._blocks)[: self._n] if self._blocks else np.zeros((0, 3))

@@ -1,0 +1,84 @@
+"""Exhaustive search of the whole map for the best explanations of a point set: the relocaliser's rival check.
+
+Before the relocaliser accepts a pose it asks: is there another place in the map that explains the same evidence
+(nearly) as well? The hypotheses it tracks came from keyframe descriptors and markers, so a place no candidate
+seeded (the half-turn image of an aisle, far from any keyframe) is simply missing, and "beats every distinct
+hypothesis" then holds trivially. This module answers the question over every pose of a coarse grid.
+
+The evidence window is one point set in the robot frame *now* (each evidence scan placed by the odometry between
+then and now). Its score at pose (x, y, theta) is ``sum_k F(x + R(theta) p_k)`` over a coarse likelihood field F.
+For one heading that is a cross-correlation of F with the image of the rotated points binned to F's cells, so
+every position is scored by one FFT product per heading: the cost is (headings) x (FFT of the map), whatever the
+number of points. Positions are cell centres of the coarse grid, headings ``headings`` evenly spaced; the best
+local maxima (non-maximum suppression in position and heading) are returned for the caller to refine and judge
+with its exact score.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import fft, ndimage
+
+Array = NDArray[np.float64]
+
+
+class CorrelativeSearch:
+    """Scores a robot-frame point set at every pose of a coarse grid over the map (see the module docstring).
+
+    ``occupied`` (ny, nx) bool: the map's walls on cells of ``res_m`` with corner ``origin``; ``coarse_m``: the
+    search grid's cell (a multiple of ``res_m`` is used); ``sigma_m``, ``floor``: the coarse field
+    ``log(exp(-d^2 / 2 sigma^2) + floor)``; ``reach_m``: points farther than this from the robot are left out
+    (it bounds the FFT padding); ``headings``: headings tried."""
+
+    def __init__(self, occupied: NDArray[np.bool_], origin: Array, res_m: float, *, coarse_m: float, sigma_m: float,
+                 floor: float, reach_m: float, headings: int) -> None:
+        f = max(round(coarse_m / res_m), 1)
+        ny, nx = occupied.shape
+        py, px = -ny % f, -nx % f
+        occ = np.pad(occupied, ((0, py), (0, px))).reshape((ny + py) // f, f, (nx + px) // f, f).any(axis=(1, 3))
+        self.res = res_m * f
+        self.origin = np.asarray(origin, dtype=np.float64)
+        d = np.asarray(ndimage.distance_transform_edt(~occ), dtype=np.float64) * self.res
+        # minus the value outside the map, so that the zero padding of the FFT is "outside"
+        table = np.log(np.exp(-0.5 * (d / sigma_m) ** 2) + floor) - np.log(floor)
+        self.shape = table.shape
+        self.reach = int(np.ceil(reach_m / self.res))
+        self.fft_shape = (fft.next_fast_len(self.shape[0] + self.reach + 1, real=True),
+                          fft.next_fast_len(self.shape[1] + self.reach + 1, real=True))
+        self._table_f = fft.rfft2(table, s=self.fft_shape, workers=1)
+        self.headings = np.linspace(-np.pi, np.pi, headings, endpoint=False)
+        self.reach_m = reach_m
+
+    def best(self, points: Array, weights: Array, count: int, min_xy_m: float, min_theta_rad: float) -> Array:
+        """The ``count`` best poses (count, 4: x, y, theta, coarse score) of robot-frame ``points`` (N,2) with
+        ``weights`` (N,), best first, no two of them within ``min_xy_m`` and ``min_theta_rad`` of each other."""
+        keep = np.hypot(points[:, 0], points[:, 1]) < self.reach_m
+        p, w = points[keep], weights[keep]
+        ny, nx = self.shape
+        fy, fx = self.fft_shape
+        per = 4 * count
+        found: list[Array] = []
+        for th in self.headings:  # one FFT product per heading; the points are one array operation
+            c, s = np.cos(th), np.sin(th)
+            u = np.rint((c * p[:, 0] - s * p[:, 1]) / self.res).astype(np.int64) % fx
+            v = np.rint((s * p[:, 0] + c * p[:, 1]) / self.res).astype(np.int64) % fy
+            kernel = np.bincount(v * fx + u, w, minlength=fy * fx).reshape(fy, fx)
+            sc = fft.irfft2(np.conj(fft.rfft2(kernel, workers=1)) * self._table_f, s=self.fft_shape,
+                            workers=1)[:ny, :nx]
+            # this heading's local maxima in position (5 x 5 cells), the best ``per`` of them
+            iy, ix = np.nonzero(sc >= ndimage.maximum_filter(sc, size=5, mode="nearest"))
+            val = sc[iy, ix]
+            top = np.argsort(-val, kind="stable")[:per]
+            found.append(np.stack([self.origin[0] + (ix[top] + 0.5) * self.res,
+                                   self.origin[1] + (iy[top] + 0.5) * self.res, np.full(len(top), th), val[top]], -1))
+        cand = np.vstack(found)
+        cand = cand[np.argsort(-cand[:, 3], kind="stable")]
+        kept: list[Array] = []
+        for c in cand:  # greedy suppression, best first, until ``count`` are kept
+            if all(np.hypot(c[0] - k[0], c[1] - k[1]) > min_xy_m
+                   or abs(np.angle(np.exp(1j * (c[2] - k[2])))) > min_theta_rad for k in kept):
+                kept.append(c)
+                if len(kept) == count:
+                    break
+        return np.asarray(kept, dtype=np.float64).reshape(-1, 4)
