@@ -167,7 +167,18 @@ class JointGraph:
                 corr = se2.compose(self.poses[last], se2.inverse(self.reported[last]))
                 guess = se2.compose(np.broadcast_to(corr, reported.shape), reported)
             else:
-                guess = reported
+                guess = reported.copy()
+            # better: chain the drone's edge to the previous keyframe (its front end's own pose drifts along the
+            # aisles; the edge fuses odometry, see fleet.drone.keyframe_edge), so a node is placed well before
+            # its first solve
+            step = {e.b: e for e in edges if e.b == e.a + 1}
+            first_id = kfs[0].id
+            for i, k in enumerate(kfs):
+                e = step.get(k.id)
+                if e is None or k.id == 0:
+                    continue
+                prev = guess[i - 1] if k.id - 1 >= first_id else self.poses[own[k.id - 1]]
+                guess[i] = se2.compose(prev, np.asarray(e.z, np.float64))
             first = len(self.poses)
             new = list(range(first, first + len(kfs)))
             self.poses = np.vstack([self.poses, guess])
@@ -309,6 +320,13 @@ class JointGraph:
     def needs_solve(self) -> bool:
         c = self.config
         return (self._loops_pending and self._since_solve >= c.loop_solve_gap) or self._since_solve >= c.solve_every
+
+    def settle(self, iterations: int = 10) -> SolveRecord | None:
+        """Solve once more if anything arrived since the last solve (a drone landed: its newest keyframes would
+        otherwise keep their first placement until another drone's update brings a solve)."""
+        if self._since_solve == 0 and not self._loops_pending:
+            return None
+        return self.solve(iterations)
 
     def solve(self, iterations: int | None = None) -> SolveRecord:
         """Gauss-Newton on the whole joint graph from the current estimate; marks moved tiles."""
