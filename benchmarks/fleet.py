@@ -118,7 +118,11 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     rows = []
     merged_all, truth_all = [], []
     by_drone = {d["drone"]: d for d in final["drones"]}
+    failed = {}
     for k in range(args.drones):
+        if not (work / f"drone{k}.json").exists():  # the drone exited with an error: keep its last words
+            failed[k] = (work / f"drone{k}.log").read_text()[-400:]
+            continue
         rec = json.loads((work / f"drone{k}.json").read_text())
         truth = np.asarray(rec["truth"], float)
         local = np.asarray(rec["local"], float)
@@ -143,6 +147,8 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     est_all = np.vstack([m for m in merged_all]) if merged_all else np.zeros((0, 3))
     ref_all = np.vstack(truth_all) if truth_all else np.zeros((0, 3))
     t_align = align_se2(est_all, ref_all)
+    if failed:
+        return {"drones": rows, "failed": failed, "kill": kill, "wall_s": round(wall, 1)}
     for row, m, t in zip(rows, merged_all, truth_all, strict=True):
         row["ate_merged_fleet_aligned_m"] = merged_ate(t, se2.compose(np.broadcast_to(t_align, m.shape), m))
     np.savez(work / "final_poses.npz", **{f"merged{k}": m for k, m in enumerate(merged_all)},

@@ -104,8 +104,8 @@ class DroneConfig:
     """simulated seconds per wall second (0: as fast as the front end runs)."""
     blackout: tuple[float, float] | None = None
     """(start, duration) in simulated seconds: no link to the server during that time."""
-    flush_timeout_s: float = 120.0
-    """wall seconds to wait at the end for every delta to be acknowledged."""
+    flush_timeout_s: float = 300.0
+    """wall seconds to wait at the end without any acknowledgement before giving up on the unacknowledged deltas."""
     keyframe_distance_m: float = 1.0
     """the front end's keyframe spacing (m; the lidar estimator's own default is 0.3 m, for a single robot)."""
     keyframe_angle_rad: float = 0.5
@@ -379,9 +379,12 @@ class Drone:
 
     def _flush(self) -> None:
         deadline = time.monotonic() + self.config.flush_timeout_s
+        left = len(self.outbox)
         while self.outbox or not self.welcomed:
+            if len(self.outbox) < left:  # a busy server that still acknowledges is waited for
+                left, deadline = len(self.outbox), time.monotonic() + self.config.flush_timeout_s
             if time.monotonic() > deadline:
-                raise DroneError(f"drone {self.drone}: {len(self.outbox)} deltas still unacknowledged after "
+                raise DroneError(f"drone {self.drone}: {len(self.outbox)} deltas still unacknowledged, none for "
                                  f"{self.config.flush_timeout_s:.0f} s (is the server at {self.server} running?)")
             self.pump()
             if self.sock is not None:
