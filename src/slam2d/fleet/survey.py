@@ -32,9 +32,13 @@ def read_survey(path: str | Path) -> Survey:
         raise ValueError(f"--survey: {p} is not a text file (expected CSV lines id,x,y)") from None
     rows: list[tuple[int, float, float]] = []
     seen: dict[int, int] = {}
+    first = True  # the header may only be the first row
     for n, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
-        if not line or line.startswith("#") or (not rows and line.replace(" ", "").lower() == "id,x,y"):
+        if not line or line.startswith("#"):
+            continue
+        header, first = first and line.replace(" ", "").lower() == "id,x,y", False
+        if header:
             continue
         parts = [f.strip() for f in line.split(",")]
         where = f"{p}:{n}"
