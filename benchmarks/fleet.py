@@ -20,7 +20,7 @@ p50/p99 and the fitted exponent of cost against fleet size, and each drone's mer
 carry each keyframe's readings) and the server joins them into shared marker nodes. ``--surveyed-markers`` (both
 parts): the server also knows every marker's position from a survey of the floor: the true positions plus a normal
 error of ``--survey-sigma`` (1 cm) per axis, drawn once (``World.marker_survey``); the network part hands it to
-``slam2d map-server --survey FILE.csv``, at the first start and at the restart after the kill.
+``slam2d map-server --marker-survey FILE.csv``, at the first start and at the restart after the kill.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def _env() -> dict[str, str]:
 
 def start_server(db: Path, port: int, log: Path, survey: Path | None = None) -> subprocess.Popen[bytes]:
     f = open(log, "ab")
-    extra = [] if survey is None else ["--survey", str(survey)]
+    extra = [] if survey is None else ["--marker-survey", str(survey)]
     p = subprocess.Popen([sys.executable, "-m", "slam2d", "map-server", "--db", str(db), "--port", str(port)] + extra,
                          stdout=f, stderr=subprocess.STDOUT, env=_env())
     from slam2d.fleet.client import ServerUnavailable, status
@@ -79,10 +79,10 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     db = work / "fleet.db"
     survey_csv = None
     if args.surveyed_markers:
-        from slam2d.fleet.survey import write_survey
+        from slam2d.io.survey import write_marker_survey
 
         survey_csv = work / "survey.csv"
-        write_survey(survey_csv, marker_survey(args.scenario, args.survey_sigma, args.seed))
+        write_marker_survey(survey_csv, marker_survey(args.scenario, args.survey_sigma, args.seed))
     server = start_server(db, port, work / "server.log", survey_csv)
     drones = []
     for k in range(args.drones):
@@ -233,7 +233,7 @@ def main() -> None:
     ap.add_argument("--floor-markers", action="store_true",
                     help="the warehouse's floor markers: drones read them, the server joins them (slam2d.fleet.joint)")
     ap.add_argument("--surveyed-markers", action="store_true",
-                    help="the server knows every marker's position from a survey (slam2d map-server --survey)")
+                    help="the server knows every marker's position from a survey (slam2d map-server --marker-survey)")
     ap.add_argument("--survey-sigma", type=float, default=0.01, help="the survey's error per axis (m)")
     ap.add_argument("--out", required=True, help="JSON output file")
     args = ap.parse_args()

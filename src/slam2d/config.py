@@ -94,8 +94,12 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
     if origin is tuple:
         items: list[Any] = [v for v in value.split(",") if v.strip()] if isinstance(value, str) else list(value)
         targs = typing.get_args(tp)
-        inner = targs[0] if targs else Any
-        return tuple(_coerce(v, inner, where) for v in items)
+        if (len(targs) == 2 and targs[1] is Ellipsis) or len(targs) <= 1:  # tuple[X, ...]: any length, one type
+            inner = targs[0] if targs else Any
+            return tuple(_coerce(v, inner, where) for v in items)
+        if len(items) != len(targs):  # tuple[X, Y, Z]: one type per position
+            raise ValueError(f"{where} must have {len(targs)} items (got {value!r})")
+        return tuple(_coerce(v, t, where) for v, t in zip(items, targs, strict=True))
     try:
         if tp is bool:
             if isinstance(value, str):

@@ -138,13 +138,14 @@ CASES: list[tuple[str, str, str]] = [
     ("map-server", "map-server --db {file}", "afile"),
     ("map-server", "map-server --db {d}/f.db --port -1", "--port"),
     ("map-server", "map-server --db {d}/f.db --port 70000", "--port"),
-    ("map-server", "map-server --db {d}/f.db --survey {d}/missing.csv", "missing.csv"),
-    ("map-server", "map-server --db {d}/f.db --survey {dir}", "directory"),
-    ("map-server", "map-server --db {d}/f.db --survey {file}", "afile:1"),
-    ("map-server", "map-server --db {d}/f.db --survey {survey_bad_id}", "survey_bad_id.csv:3"),
-    ("map-server", "map-server --db {d}/f.db --survey {survey_nan}", "survey_nan.csv:1"),
-    ("map-server", "map-server --db {d}/f.db --survey {survey_dup}", "survey_dup.csv:4"),
-    ("map-server", "map-server --db {d}/f.db --survey {survey_empty}", "no marker"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey {d}/missing.csv", "missing.csv"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey {dir}", "adir"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey {file}", "afile:1"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey {survey_bad_id}", "survey_bad_id.csv:3"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey {survey_nan}", "survey_nan.csv:1"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey {survey_dup}", "survey_dup.csv:4"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey {survey_empty}", "no marker"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey /dev/zero", "/dev/zero"),
     ("map-server", "map-server --db {d}/f.db --survey-sigma 0", "--survey-sigma"),
     ("map-server", "map-server --db {d}/f.db --survey-sigma nan", "--survey-sigma"),
     ("drone", "drone --server nowhere --drone 0", "--server"),
@@ -162,6 +163,17 @@ CASES: list[tuple[str, str, str]] = [
     ("run", "run --scenario room --estimator lidar --map-out {file}", "afile"),
     ("run", "run --scenario room --estimator lidar --map-out {dir}", "directory"),
     ("run", "run --scenario room --estimator ekf --map-out {d}/m.db", "lidar"),
+    # floor-marker surveys (read before the run starts; file:line named)
+    ("run", "run --scenario room --estimator lidar --marker-survey {survey}", "lidar-lifelong"),
+    ("run", "run --scenario room --estimator lidar-lifelong --marker-survey {file}", "afile:1"),
+    ("run", "run --scenario room --estimator lidar-lifelong --marker-survey {d}/missing.csv", "missing.csv"),
+    ("run", "run --scenario room --estimator lidar-lifelong --marker-survey {dir}", "adir"),
+    ("run", "run --scenario room --estimator lidar-lifelong --marker-survey /dev/zero", "/dev/zero"),
+    ("simulate", "simulate --out {d}/s.npz --set steps=3 --marker-survey {d}/s.csv", "no floor markers"),
+    ("simulate", "simulate --out {d}/s.npz --set steps=3 --marker-survey {dir}", "directory"),
+    ("simulate", "simulate --out {d}/s.npz --set steps=3 --marker-survey {file}/s.csv", "not a directory"),
+    ("simulate", "simulate --out {d}/s.npz --set steps=3 --survey-sigma nan", "--survey-sigma"),
+    ("simulate", "simulate --out {d}/s.npz --set steps=3 --survey-sigma -1", "--survey-sigma"),
 ]
 
 
@@ -182,6 +194,7 @@ def scratch(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
     (d / "afile").write_text("just some text\n")
     (d / "g.g2o").write_text(G2O)
     (d / "sweep.toml").write_text(TOML)
+    (d / "survey.csv").write_text("id,x,y\n0,1.0,2.0\n")
     assert main(["simulate", "--out", str(d / "log.npz"), "--set", "steps=5"]) == 0
     surveys = {"survey_bad_id": "id,x,y\n0,1.0,2.0\nseven,1,2\n", "survey_nan": "0,1.0,nan\n",
                "survey_dup": "# floor markers\nid,x,y\n3,1,2\n3,4,5\n", "survey_empty": "id,x,y\n\n"}
@@ -190,8 +203,8 @@ def scratch(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
     (d / "res").mkdir()
     (d / "res" / "results.jsonl").write_text("")
     return {"d": str(d), "dir": str(d / "adir"), "file": str(d / "afile"), "g2o": str(d / "g.g2o"),
-            "log": str(d / "log.npz"), "toml": str(d / "sweep.toml"), "res": str(d / "res"),
-            **{name: str(d / f"{name}.csv") for name in surveys}}
+            "survey": str(d / "survey.csv"), "log": str(d / "log.npz"), "toml": str(d / "sweep.toml"),
+            "res": str(d / "res"), **{name: str(d / f"{name}.csv") for name in surveys}}
 
 
 @pytest.mark.parametrize(("command", "template", "mention"), CASES, ids=[c[1] for c in CASES])

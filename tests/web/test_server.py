@@ -333,3 +333,44 @@ def test_a_task_done_reaches_the_page_without_a_command(server: Any) -> None:
 
     pushed = _run(go())
     assert pushed["task"]["result"].startswith("Done: at 1.2 m pose uncertainty nn made")
+
+
+def test_a_session_that_breaks_while_drawing_tells_its_page_why(monkeypatch: pytest.MonkeyPatch) -> None:
+    import threading
+
+    import uvicorn
+
+    from slam2d.web import app as app_module
+    from slam2d.web.pages import Page
+    from slam2d.web.sessions import SimSession
+
+    class Broken(SimSession):
+        def sections(self) -> Any:
+            raise ValueError("no layer yet")
+
+    def build(seed: int) -> Broken:
+        return Broken(page="problem", title="broken", seed=seed, estimator="ekf")
+
+    monkeypatch.setitem(app_module.PAGE_BY_SLUG, "broken", Page("broken", 99, "broken", "a test page", build))
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    srv = uvicorn.Server(uvicorn.Config(app_module.create_app(), host="127.0.0.1", port=port, log_level="error"))
+    thread = threading.Thread(target=srv.run, daemon=True)
+    thread.start()
+
+    async def go() -> dict[str, Any]:
+        for _ in range(200):
+            if srv.started:
+                break
+            await asyncio.sleep(0.05)
+        async with websockets.connect(f"ws://127.0.0.1:{port}/ws/broken", compression=None) as ws:
+            await _hello(ws)
+            return await _next_json(ws, "error")
+
+    try:
+        msg = _run(go())
+    finally:
+        srv.should_exit = True
+        thread.join(30)
+    assert "stopped" in msg["message"] and "ValueError: no layer yet" in msg["message"]

@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 
 from slam2d.geometry import se2
+from slam2d.maps.layers import DYNAMIC, STATIC, LayersConfig, MapLayers
+from slam2d.sim.world import segment_distances
 from slam2d.web.frames import decode_frame, encode_frame
 from slam2d.web.params import CommandError
-from slam2d.web.sessions.warehouse import WarehouseSession, max_forklifts, scenario
+from slam2d.web.sessions.warehouse import ON_FORKLIFT_M, WarehouseSession, max_forklifts, saved_map, scenario
 
 FRAMES = "window.slamLab && window.slamLab.drawn > 3 && window.slamLab.hello !== null"
 
@@ -131,6 +133,46 @@ def test_cold_start_has_no_relocaliser_and_draws_its_own_static_layer() -> None:
         s.step_once()
     sec = dict(s.sections())
     assert "HYPO" not in sec and "GRID" in sec
-    grid = s.est.lidar.occupancy_grid()
+    grid = s.est.lidar.map_layers().static_grid()
     nums = dict(zip(s.scalars, sec["NUMS"].tolist(), strict=True))
     assert nums["static_cells"] == float((grid.probability() > 0.65).sum())
+    assert nums["keyframes"] == s.est.lidar.layer_stats().keyframes >= 1
+
+
+def test_scan_points_are_drawn_by_the_estimators_labels_and_forklifts_are_checked_against_truth() -> None:
+    s = WarehouseSession(seed=0)
+    shares = []
+    for _ in range(300):
+        s.step_once()
+        if not s.est.relocalised:
+            continue
+        sec = dict(s.sections())
+        nums = dict(zip(s.scalars, sec["NUMS"].tolist(), strict=True))
+        pts, labels = s.est.lidar.last_labels()
+        world = se2.transform_points(s.est.estimate().pose, pts)
+        for name, want in (("SCAN", labels == STATIC), ("SDYN", labels == DYNAMIC),
+                           ("SPND", (labels != STATIC) & (labels != DYNAMIC))):
+            got = sec.get(name, np.zeros((0, 2)))
+            np.testing.assert_allclose(got, world[want], atol=1e-4)  # frames carry float32
+        assert nums["dynamic_points"] == np.count_nonzero(labels == DYNAMIC)
+        lay = s.est.lidar.map_layers()
+        assert nums["dynamic_cells"] == len(lay.dynamic_points(s.sim.time_s)) == len(sec.get("DYNL", ()))
+        assert nums["promoted"] == lay.promoted and nums["marker_fixes"] == s.est.lidar.layer_stats().marker_fixes
+        # the forklift share, recomputed here from the truth outlines at the scan's time and the true pose
+        fork = np.vstack([m.segments(s.sim.time_s) for m in s.sim.world.moving])
+        on = segment_distances(se2.transform_points(s.sim.pose, pts), fork).min(axis=1) < ON_FORKLIFT_M
+        assert nums["forklift_points"] == on.sum()
+        if on.any():
+            shares.append(nums["forklift_dynamic_pct"])
+            assert nums["forklift_dynamic_pct"] == pytest.approx(100 * np.mean(labels[on] == DYNAMIC), abs=1e-3)
+    assert s.est.relocalised and len(shares) > 10
+    assert np.mean(shares) > 80  # forklifts in view are mostly labelled dynamic (the rest: pending, new ground)
+    assert nums["error_m"] < 0.1 and nums["marker_fixes"] > 0  # surveyed markers keep the pose within centimetres
+
+
+def test_the_saved_map_carries_a_static_layer_the_session_localises_against() -> None:
+    prior = saved_map(0)
+    lay = MapLayers.from_saved(LayersConfig(), prior.layers)
+    walls = WarehouseSession(seed=0).sim.world.walls
+    d = segment_distances(lay.static_points(), walls).min(axis=1)
+    assert len(d) > 1000 and np.quantile(d, 0.95) < 0.15  # the static layer is the racks and walls, not forklifts

@@ -66,7 +66,7 @@ def relocalisation_record(est: LidarSession, true_poses: np.ndarray | None, t0: 
     return out
 
 
-def run_session(args: argparse.Namespace, overrides: dict[str, str]) -> tuple[dict[str, Any], LidarSession]:
+def run_session(args: argparse.Namespace, overrides: dict[str, Any]) -> tuple[dict[str, Any], LidarSession]:
     """Simulate, check the map files, run the session; returns (record, estimator)."""
     if args.estimator not in SESSION_ESTIMATORS:
         raise ValueError(f"--map-in/--map-out need --estimator lidar or lidar-lifelong (got {args.estimator!r})")

@@ -20,6 +20,7 @@ from slam2d.config import parse_set_args
 from slam2d.eval.gps import gps_ate
 from slam2d.io.carmen import is_carmen_source
 from slam2d.io.datasets import DATASETS, load_dataset
+from slam2d.io.survey import read_marker_survey
 from slam2d.lab.multi_robot import MULTI_ESTIMATORS, run_multi, table_rows
 from slam2d.lab.registry import estimator_names
 from slam2d.lab.runner import run_named
@@ -70,6 +71,9 @@ def register(sub: Any) -> None:
     p.add_argument("--map-out", default=None, metavar="B.db",
                    help="--estimator lidar or lidar-lifelong on a simulated scenario: save the estimated map "
                         "(keyframes, pose graph, static layer) here, atomically (may equal --map-in)")
+    p.add_argument("--marker-survey", default=None, metavar="FILE.csv",
+                   help="--estimator lidar-lifelong: the floor markers' surveyed map-frame positions (lines 'id,x,y'; "
+                        "'slam2d simulate --marker-survey' writes one); each marker the camera reads corrects the pose")
     add_set_argument(p)
     add_force_argument(p)
     p.set_defaults(func=cmd)
@@ -108,6 +112,8 @@ def cmd(args: argparse.Namespace) -> int:
                                                          ("--map", args.map)])
     if args.robot == "all" or args.estimator in MULTI_ESTIMATORS or args.unknown_starts:
         return _cmd_multi(args)
+    if args.marker_survey and args.estimator != "lidar-lifelong":
+        raise ValueError(f"--marker-survey needs --estimator lidar-lifelong (got {args.estimator!r})")
     if args.map_in or args.map_out:
         return _cmd_session(args)
     log = Log.load(args.log) if args.log else None
@@ -119,7 +125,7 @@ def cmd(args: argparse.Namespace) -> int:
                            max_steps=args.max_steps, max_time_s=args.max_time, **opts)
     elif args.dataset_path or args.max_steps or args.max_time or args.dataset_opt:
         raise ValueError("--dataset-path, --dataset-opt, --max-steps and --max-time need --dataset NAME")
-    overrides: dict[str, str] = overrides_from(args)
+    overrides = _overrides(args)
     if args.association:
         overrides["estimator.association.method"] = args.association
     if args.no_loop_closure:
@@ -142,6 +148,14 @@ def cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """``--set`` pairs, plus the survey rows of ``--marker-survey`` (read here: a bad file fails before the run)."""
+    out: dict[str, Any] = dict(overrides_from(args))
+    if args.marker_survey:
+        out["estimator.surveyed_markers"] = read_marker_survey(args.marker_survey)
+    return out
+
+
 def _simulated(args: argparse.Namespace) -> Log:
     """The scenario log ``run_named`` simulated (same seed and overrides: simulation is deterministic)."""
     from slam2d.config import split_overrides, with_overrides
@@ -159,7 +173,7 @@ def _cmd_session(args: argparse.Namespace) -> int:
     """``--map-in`` / ``--map-out``: a lidar session with saved maps (slam2d.cli.map_session)."""
     from slam2d.cli.map_session import run_session, save_session_map
 
-    record, est = run_session(args, overrides_from(args))
+    record, est = run_session(args, _overrides(args))
     print_table([record], [c for c in COLUMNS if c in record])
     rel = record.get("relocalisation")
     if rel is not None:

@@ -4,6 +4,5 @@
 * :mod:`~slam2d.fleet.journal`: the server's SQLite (WAL) state, one transaction per delta;
 * :mod:`~slam2d.fleet.joint`: the joint pose graph, inter-robot loop closures, map tiles;
 * :mod:`~slam2d.fleet.server`: the map server (ROUTER socket);
-* :mod:`~slam2d.fleet.drone`: a simulated drone with its own lidar front end (DEALER socket);
-* :mod:`~slam2d.fleet.survey`: the floor-marker survey file the map server anchors the joint graph with.
+* :mod:`~slam2d.fleet.drone`: a simulated drone with its own lidar front end (DEALER socket).
 """

@@ -22,8 +22,8 @@ loop (inter-robot or a drone's own) and every ``solve_every`` keyframes otherwis
 (``solve_growth``) so that the whole-graph work per keyframe stays bounded as the fleet's map grows. Between
 solves a new keyframe is placed by chaining its drone's edge, which the drone fused with its odometry. Loop edges
 (a drone's own and inter-robot) carry a Cauchy kernel; the keyframe chains and marker readings are plain least
-squares. Surveyed markers (``surveyed_markers``, from ``slam2d map-server --survey``) get priors at their surveyed
-positions and tie every drone that reads one to the warehouse frame.
+squares. Surveyed markers (``surveyed_markers``, from ``slam2d map-server --marker-survey``) get priors at their
+surveyed positions and tie every drone that reads one to the warehouse frame.
 """
 
 from __future__ import annotations

@@ -38,7 +38,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from slam2d.geometry import se2
 from slam2d.log import Log
+from slam2d.maps.layers import LayersConfig, MapLayers
 from slam2d.maps.occupancy import OccupancyConfig, OccupancyGrid
+from slam2d.models.lidar import scan_to_points
 from slam2d.sim.scenarios import SCENARIOS
 
 Array = NDArray[np.float64]
@@ -417,12 +419,14 @@ def range_histogram(ranges: ArrayLike, max_range: float, bins: int = 16) -> Arra
 
 
 def snapshot_from_truth(log: Log, *, keyframe_every_m: float = 1.0, keyframe_every_rad: float = 0.5,
-                        occupancy: OccupancyConfig | None = None) -> MapSnapshot:
+                        occupancy: OccupancyConfig | None = None, layers: LayersConfig | None = None) -> MapSnapshot:
     """A map built from a simulated run's TRUE poses: keyframes where the robot moved ``keyframe_every_m`` or
     turned ``keyframe_every_rad`` since the last one, the occupancy grid of the keyframe scans, and a chain pose
     graph over the keyframes (true relative poses, nominal information for 5 cm / 0.6 deg), and the floor markers
-    (layer ``floor_markers``, marker ``i`` has id ``i``) when the world has them. This is a mapping-from-
-    truth utility for tests and the saved-map workflow until the lidar estimator writes its own maps."""
+    (layer ``floor_markers``, marker ``i`` has id ``i``) when the world has them. ``layers``: also a lifelong
+    static layer (:meth:`MapLayers.saved`), every scan integrated at its true pose by the layers' own persistence
+    rule, so forklifts stay out of it as they do in a lifelong session. A mapping-from-truth utility for tests and
+    pages that must start in seconds; the lidar sessions write their own maps."""
     if log.true_poses is None or log.scan_step is None or log.scan_ranges_m is None or log.scan_angles_rad is None:
         raise ValueError("map from truth needs a simulated log with true poses and lidar scans")
     if not (keyframe_every_m > 0 and keyframe_every_rad > 0):
@@ -467,5 +471,19 @@ def snapshot_from_truth(log: Log, *, keyframe_every_m: float = 1.0, keyframe_eve
                   "flight": flight,
                   "steps": log.num_steps, "keyframe_every_m": keyframe_every_m,
                   "keyframe_every_rad": keyframe_every_rad},
-        layers={} if log.true_markers is None else {"floor_markers": log.true_markers.copy()},
+        layers={**({} if log.true_markers is None else {"floor_markers": log.true_markers.copy()}),
+                **({} if layers is None else _static_layer_from_truth(log, layers))},
     )
+
+
+def _static_layer_from_truth(log: Log, config: LayersConfig) -> dict[str, NDArray[Any]]:
+    """The saved static layer of every scan of ``log`` integrated at its true pose (one scan at a time: the
+    persistence rule is sequential)."""
+    assert log.true_poses is not None and log.scan_step is not None and log.scan_ranges_m is not None
+    assert log.scan_angles_rad is not None
+    lay = MapLayers(config)
+    for k, (step, ranges) in enumerate(zip(log.scan_step.tolist(), log.scan_ranges_m, strict=True)):
+        pose = log.true_poses[step]
+        pts = scan_to_points(ranges, log.scan_angles_rad, log.scan_max_range_m)
+        lay.integrate(pose, pts, lay.classify(pose, pts), float(log.stamps_s[step]), bootstrap=k == 0)
+    return lay.saved()

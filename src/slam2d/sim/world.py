@@ -78,10 +78,8 @@ class World:
     floor_markers: Array = field(default_factory=lambda: np.zeros((0, 2)))
 
     def marker_survey(self, sigma_m: float, rng: np.random.Generator) -> tuple[tuple[int, float, float], ...]:
-        """The floor markers as a survey of the floor would give them: (id, x, y), each position off the truth by a
-        normal draw of ``sigma_m`` per axis. Empty without markers."""
-        xy = self.floor_markers + rng.normal(0.0, sigma_m, self.floor_markers.shape)
-        return tuple((i, float(x), float(y)) for i, (x, y) in enumerate(xy.tolist()))
+        """The floor markers as a survey of the floor would give them (:func:`marker_survey`)."""
+        return marker_survey(self.floor_markers, sigma_m, rng)
 
     @cached_property
     def _fleet(self) -> dict[str, Array]:
@@ -180,14 +178,22 @@ class World:
         return self._fleet_state(time_s)[0]
 
 
+def marker_survey(markers: Array, sigma_m: float, rng: np.random.Generator) -> tuple[tuple[int, float, float], ...]:
+    """True floor markers (M,2) (marker ``i`` has id ``i``) as a survey of the floor would give them: (id, x, y),
+    each position off the truth by a normal draw of ``sigma_m`` per axis. Empty without markers."""
+    xy = markers + rng.normal(0.0, sigma_m, markers.shape)
+    return tuple((i, float(x), float(y)) for i, (x, y) in enumerate(xy.tolist()))
+
+
 def segment_distances(p: Array, segments: Array) -> Array:
-    """Distance from point ``p`` (2,) to each segment (W,4) -> (W,)."""
+    """Distance from points ``p`` (..., 2) to each segment (W,4) -> (..., W)."""
     a, b = segments[:, :2], segments[:, 2:]
     ab = b - a
     den = np.maximum(np.sum(ab * ab, axis=1), 1e-18)
-    t = np.clip(np.sum((p - a) * ab, axis=1) / den, 0.0, 1.0)
-    q = a + t[:, None] * ab
-    return np.hypot(p[0] - q[:, 0], p[1] - q[:, 1])
+    ap = np.asarray(p, dtype=np.float64)[..., None, :] - a
+    t = np.clip(np.sum(ap * ab, axis=-1) / den, 0.0, 1.0)
+    d = ap - t[..., None] * ab
+    return np.hypot(d[..., 0], d[..., 1])
 
 
 def box_walls(x0: float, y0: float, x1: float, y1: float) -> Array:

@@ -13,6 +13,7 @@ Protocol of ``/ws/{page}?seed=S&hz=H``:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import time
@@ -305,6 +306,9 @@ def create_app(*, allow_origins: frozenset[str] = frozenset(), hosts: frozenset[
                 exc = t.exception()
                 if exc is not None and not _is_disconnect(exc):
                     log.warning("session %s ended with %s: %s", slug, type(exc).__name__, exc)
+                    with contextlib.suppress(Exception):  # tell the page why it stopped, if it still listens
+                        await conn.send_json({"type": "error", "message": f"this page's session stopped: "
+                                                                          f"{type(exc).__name__}: {exc}"})
         except asyncio.CancelledError:  # the server is shutting down (Ctrl+C): end this page quietly
             for t in tasks:
                 t.cancel()
