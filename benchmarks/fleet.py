@@ -1,8 +1,10 @@
 """The drone fleet over the network: N drone processes, one map-server process, a kill -9 of the server mid-run,
 one drone cut off for a while; then the server's cost per update as the fleet grows (in one process).
 
-    python benchmarks/fleet.py --drones 5 --minutes 30 --out fleet_full.json     # the issue's full run
-    python benchmarks/fleet.py --drones 5 --minutes 4 --out fleet.json           # what fits a loaded 2-core box
+    # the issue's run (docs/fleet_30min.json: 770 s wall on a loaded 2-core box)
+    python benchmarks/fleet.py --drones 5 --minutes 30 --kill-after 540 --cut-at 600 --scaling '' \
+        --floor-markers --surveyed-markers --out fleet_30min.json
+    python benchmarks/fleet.py --drones 5 --minutes 4 --out fleet.json           # a short run
 
 Network part (real processes, ZeroMQ on 127.0.0.1): bytes per simulated second per drone (up = drone -> server,
 down = server -> drone; mean and p99 over the flight's seconds), inter-robot loops found, each drone's ATE of its
@@ -15,8 +17,10 @@ keyframes flown, and the cut-off drone's record. Scaling part: ``slam2d.fleet.lo
 p50/p99 and the fitted exponent of cost against fleet size, and each drone's merged-frame ATE.
 
 ``--floor-markers``: the warehouse's floor markers; drones read them (their front end uses them and their deltas
-carry each keyframe's readings) and the server joins them into shared marker nodes. ``--surveyed-markers`` (in-process
-part only): the server also knows every marker's position, as from a survey of the floor (1 cm priors).
+carry each keyframe's readings) and the server joins them into shared marker nodes. ``--surveyed-markers`` (both
+parts): the server also knows every marker's position from a survey of the floor: the true positions plus a normal
+error of ``--survey-sigma`` (1 cm) per axis, drawn once (``World.marker_survey``); the network part hands it to
+``slam2d map-server --marker-survey FILE.csv``, at the first start and at the restart after the kill.
 """
 
 from __future__ import annotations
@@ -49,9 +53,10 @@ def _env() -> dict[str, str]:
     return env
 
 
-def start_server(db: Path, port: int, log: Path) -> subprocess.Popen[bytes]:
+def start_server(db: Path, port: int, log: Path, survey: Path | None = None) -> subprocess.Popen[bytes]:
     f = open(log, "ab")
-    p = subprocess.Popen([sys.executable, "-m", "slam2d", "map-server", "--db", str(db), "--port", str(port)],
+    extra = [] if survey is None else ["--marker-survey", str(survey)]
+    p = subprocess.Popen([sys.executable, "-m", "slam2d", "map-server", "--db", str(db), "--port", str(port)] + extra,
                          stdout=f, stderr=subprocess.STDOUT, env=_env())
     from slam2d.fleet.client import ServerUnavailable, status
 
@@ -72,7 +77,13 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     port = _free_port()
     ep = f"tcp://127.0.0.1:{port}"
     db = work / "fleet.db"
-    server = start_server(db, port, work / "server.log")
+    survey_csv = None
+    if args.surveyed_markers:
+        from slam2d.io.survey import write_marker_survey
+
+        survey_csv = work / "survey.csv"
+        write_marker_survey(survey_csv, marker_survey(args.scenario, args.survey_sigma, args.seed))
+    server = start_server(db, port, work / "server.log", survey_csv)
     drones = []
     for k in range(args.drones):
         cmd = [sys.executable, "-m", "slam2d", "drone", "--server", ep, "--drone", str(k), "--scenario",
@@ -94,7 +105,7 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     kill["killed_at_wall_s"] = round(time.monotonic() - t0, 1)
     time.sleep(args.down_seconds)
     t_restart = time.monotonic()
-    server = start_server(db, port, work / "server.log")
+    server = start_server(db, port, work / "server.log", survey_csv)
     kill["restart_s"] = round(time.monotonic() - t_restart, 2)
     after = status(ep)
     kill["committed_after_restart"] = {d["drone"]: d["keyframes"] for d in after["drones"]}
@@ -109,7 +120,11 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     rows = []
     merged_all, truth_all = [], []
     by_drone = {d["drone"]: d for d in final["drones"]}
+    failed = {}
     for k in range(args.drones):
+        if not (work / f"drone{k}.json").exists():  # the drone exited with an error: keep its last words
+            failed[k] = (work / f"drone{k}.log").read_text()[-400:]
+            continue
         rec = json.loads((work / f"drone{k}.json").read_text())
         truth = np.asarray(rec["truth"], float)
         local = np.asarray(rec["local"], float)
@@ -134,6 +149,8 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
     est_all = np.vstack([m for m in merged_all]) if merged_all else np.zeros((0, 3))
     ref_all = np.vstack(truth_all) if truth_all else np.zeros((0, 3))
     t_align = align_se2(est_all, ref_all)
+    if failed:
+        return {"drones": rows, "failed": failed, "kill": kill, "wall_s": round(wall, 1)}
     for row, m, t in zip(rows, merged_all, truth_all, strict=True):
         row["ate_merged_fleet_aligned_m"] = merged_ate(t, se2.compose(np.broadcast_to(t_align, m.shape), m))
     np.savez(work / "final_poses.npz", **{f"merged{k}": m for k, m in enumerate(merged_all)},
@@ -147,24 +164,30 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
             "wall_s": round(wall, 1), "server_errors": final["errors"], "markers": final.get("markers")}
 
 
-def scaling(sizes: list[int], minutes: float, seed: int, work: Path, floor_markers: bool = False,
-            surveyed: bool = False) -> dict[str, Any]:
-    from slam2d.fleet.drone import DroneConfig
-    from slam2d.fleet.joint import JointConfig
-    from slam2d.fleet.local import merged_ate, run_local
+def marker_survey(scenario: str, sigma_m: float, seed: int) -> tuple[tuple[int, float, float], ...]:
+    """The scenario's floor markers as a survey gives them (each position off by N(0, sigma_m) per axis)."""
     from slam2d.sim.scenarios import ScenarioConfig
     from slam2d.sim.simulator import Simulator
     from slam2d.sim.warehouse import WarehouseConfig
+
+    world = Simulator(ScenarioConfig(name=scenario, warehouse=WarehouseConfig(floor_markers=True))).world
+    return world.marker_survey(sigma_m, np.random.default_rng([seed, 17]))
+
+
+def scaling(sizes: list[int], minutes: float, seed: int, work: Path, floor_markers: bool = False,
+            surveyed: bool = False, survey_sigma_m: float = 0.01) -> dict[str, Any]:
+    from slam2d.fleet.drone import DroneConfig
+    from slam2d.fleet.joint import JointConfig
+    from slam2d.fleet.local import merged_ate, run_local
 
     out: dict[str, Any] = {"sizes": sizes, "minutes": minutes, "rows": []}
     for n in sizes:
         db = work / f"scale{n}.db"
         t0 = time.perf_counter()
         joint = JointConfig()
-        if surveyed:  # the scenario's own marker positions stand for a survey of the floor markers
-            world = Simulator(ScenarioConfig(name="warehouse", warehouse=WarehouseConfig(floor_markers=True))).world
-            joint = JointConfig(surveyed_markers=tuple((i, float(x), float(y))
-                                                       for i, (x, y) in enumerate(world.floor_markers)))
+        if surveyed:
+            joint = JointConfig(surveyed_markers=marker_survey("warehouse", survey_sigma_m, seed),
+                                survey_sigma_m=survey_sigma_m)
         run = run_local(db, n, DroneConfig(minutes=minutes, seed=seed, floor_markers=floor_markers), joint)
         results = [d.result() for d in run.drones]
         j = run.server.joint
@@ -210,9 +233,12 @@ def main() -> None:
     ap.add_argument("--floor-markers", action="store_true",
                     help="the warehouse's floor markers: drones read them, the server joins them (slam2d.fleet.joint)")
     ap.add_argument("--surveyed-markers", action="store_true",
-                    help="in-process part only: the server knows every marker's position (a survey; 1 cm priors)")
+                    help="the server knows every marker's position from a survey (slam2d map-server --marker-survey)")
+    ap.add_argument("--survey-sigma", type=float, default=0.01, help="the survey's error per axis (m)")
     ap.add_argument("--out", required=True, help="JSON output file")
     args = ap.parse_args()
+    if args.surveyed_markers and not args.floor_markers:
+        ap.error("--surveyed-markers needs --floor-markers (the drones must read the markers)")
     result: dict[str, Any] = {"args": vars(args)}
     work = Path(args.out + ".work")  # server/drone logs and records, kept
     work.mkdir(parents=True, exist_ok=True)
@@ -223,7 +249,7 @@ def main() -> None:
         print(json.dumps(result["network"], indent=1, default=str), flush=True)
     if args.scaling:
         result["scaling"] = scaling([int(s) for s in args.scaling.split(",")], args.scaling_minutes,
-                                    args.seed, work, args.floor_markers, args.surveyed_markers)
+                                    args.seed, work, args.floor_markers, args.surveyed_markers, args.survey_sigma)
         print(json.dumps(result["scaling"], indent=1), flush=True)
     Path(args.out).write_text(json.dumps(result, indent=1, default=str) + "\n")
 

@@ -1,7 +1,8 @@
 """Every CLI sub-command against bad paths and values: exit != 0, ONE stderr line, no stack, no file changed.
 
 Placeholders in the table: {dir} an existing directory, {file} an existing plain file, {g2o} a valid graph,
-{log} a valid simulated log, {toml} a valid sweep file, {res} a sweep result directory, {d} the scratch folder.
+{log} a valid simulated log, {toml} a valid sweep file, {res} a sweep result directory, {d} the scratch folder,
+{survey_*} floor-marker survey CSV files with one bad row each.
 """
 
 from __future__ import annotations
@@ -137,6 +138,16 @@ CASES: list[tuple[str, str, str]] = [
     ("map-server", "map-server --db {file}", "afile"),
     ("map-server", "map-server --db {d}/f.db --port -1", "--port"),
     ("map-server", "map-server --db {d}/f.db --port 70000", "--port"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey {d}/missing.csv", "missing.csv"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey {dir}", "adir"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey {file}", "afile:1"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey {survey_bad_id}", "survey_bad_id.csv:3"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey {survey_nan}", "survey_nan.csv:1"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey {survey_dup}", "survey_dup.csv:4"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey {survey_empty}", "no marker"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey /dev/zero", "/dev/zero"),
+    ("map-server", "map-server --db {d}/f.db --survey-sigma 0", "--survey-sigma"),
+    ("map-server", "map-server --db {d}/f.db --survey-sigma nan", "--survey-sigma"),
     ("drone", "drone --server nowhere --drone 0", "--server"),
     ("drone", "drone --server 127.0.0.1:1 --drone -1", "--drone"),
     ("drone", "drone --server 127.0.0.1:1 --drone 0 --minutes nan", "--minutes"),
@@ -185,11 +196,15 @@ def scratch(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
     (d / "sweep.toml").write_text(TOML)
     (d / "survey.csv").write_text("id,x,y\n0,1.0,2.0\n")
     assert main(["simulate", "--out", str(d / "log.npz"), "--set", "steps=5"]) == 0
+    surveys = {"survey_bad_id": "id,x,y\n0,1.0,2.0\nseven,1,2\n", "survey_nan": "0,1.0,nan\n",
+               "survey_dup": "# floor markers\nid,x,y\n3,1,2\n3,4,5\n", "survey_empty": "id,x,y\n\n"}
+    for name, text in surveys.items():
+        (d / f"{name}.csv").write_text(text)
     (d / "res").mkdir()
     (d / "res" / "results.jsonl").write_text("")
     return {"d": str(d), "dir": str(d / "adir"), "file": str(d / "afile"), "g2o": str(d / "g.g2o"),
             "survey": str(d / "survey.csv"), "log": str(d / "log.npz"), "toml": str(d / "sweep.toml"),
-            "res": str(d / "res")}
+            "res": str(d / "res"), **{name: str(d / f"{name}.csv") for name in surveys}}
 
 
 @pytest.mark.parametrize(("command", "template", "mention"), CASES, ids=[c[1] for c in CASES])

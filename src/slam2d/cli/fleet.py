@@ -20,6 +20,11 @@ def register(sub: Any) -> None:
     p.add_argument("--db", required=True, metavar="MAP.db", help="the server's SQLite file (created if missing)")
     p.add_argument("--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, default=5555, help="TCP port (default 5555; 0: any free port, printed)")
+    p.add_argument("--marker-survey", default=None, metavar="FILE.csv",
+                   help="surveyed floor-marker positions, lines id,x,y (m, warehouse frame): each becomes a prior "
+                        "on its marker, anchoring every drone that reads it (read again at every start)")
+    p.add_argument("--survey-sigma", type=float, default=0.01, metavar="M",
+                   help="standard deviation of a surveyed position per axis (m; default 0.01)")
     p.add_argument("--durable", action="store_true",
                    help="fsync every commit (survives a power cut, not only a crash of the server; slower)")
     p.set_defaults(func=cmd_server)
@@ -54,14 +59,19 @@ def _need_fleet_extra(command: str) -> None:
 
 def cmd_server(args: argparse.Namespace) -> int:
     _need_fleet_extra("map-server")
+    from slam2d.fleet.joint import JointConfig
     from slam2d.fleet.server import MapServer
+    from slam2d.io.survey import read_marker_survey
 
     check_number("--port", args.port, low=0, high=65535)
-    server = MapServer(args.db, durable=args.durable)
+    check_number("--survey-sigma", args.survey_sigma, low=0, low_open=True, high=10.0)
+    survey = () if args.marker_survey is None else read_marker_survey(args.marker_survey)  # before the db is touched
+    server = MapServer(args.db, JointConfig(surveyed_markers=survey, survey_sigma_m=args.survey_sigma),
+                       durable=args.durable)
 
     def ready(endpoint: str) -> None:
         print(f"map-server: listening on {endpoint} (db {args.db}, {len(server.drones)} drones, "
-              f"{len(server.joint.poses)} keyframes)", flush=True)
+              f"{len(server.joint.poses)} keyframes, {len(survey)} surveyed markers)", flush=True)
 
     import zmq
 

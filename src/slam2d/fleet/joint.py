@@ -18,7 +18,12 @@ an aisle as well as across it; one read again by the same drone ``marker_resight
 Either counts as a loop for the solve schedule.
 
 Optimisation: Gauss-Newton on the whole joint graph from the current estimate, after every update that brought a
-loop (inter-robot or a drone's own) and every ``solve_every`` keyframes otherwise.
+loop (inter-robot or a drone's own) and every ``solve_every`` keyframes otherwise; both gaps grow with the graph
+(``solve_growth``) so that the whole-graph work per keyframe stays bounded as the fleet's map grows. Between
+solves a new keyframe is placed by chaining its drone's edge, which the drone fused with its odometry. Loop edges
+(a drone's own and inter-robot) carry a Cauchy kernel; the keyframe chains and marker readings are plain least
+squares. Surveyed markers (``surveyed_markers``, from ``slam2d map-server --marker-survey``) get priors at their
+surveyed positions and tie every drone that reads one to the warehouse frame.
 """
 
 from __future__ import annotations
@@ -77,6 +82,14 @@ class JointConfig:
     loop_solve_gap: int = 10
     """a loop waits until this many keyframes arrived since the last solve (bounds the solves per second when
     drones run faster than real time)."""
+    loop_kernel: str | None = "cauchy"
+    """robust kernel on every loop edge (a drone's own and inter-robot; the keyframe chains stay plain least
+    squares): measured at 10 simulated minutes, 5 drones, about 1 % of the loops are off by more than 20 cm."""
+    loop_kernel_scale: float = 3.0
+    """scale of ``loop_kernel`` in standard deviations (the lidar back end's own default)."""
+    solve_growth: float = 0.02
+    """the gaps above are at least this fraction of the graph's keyframes (a whole-graph solve costs time in
+    proportion to the graph; 5 drones for 30 minutes make ~9000 keyframes, a solve every 180 at the end)."""
     solve_iterations: int = 3
     """Gauss-Newton iterations per solve (warm-started from the current estimate)."""
     marker_resight_keyframes: int = 10
@@ -90,6 +103,8 @@ class JointConfig:
     """side of a map tile (m)."""
     tile_resolution_m: float = 0.2
     """cell of a tile's hit-count raster (m)."""
+    raster_place_m: float = 1.0
+    """a tile's raster draws the newest keyframe in each cell of this size and heading octant (m)."""
 
 
 def free_axis(info: Array, sigma_m: float) -> Array:
@@ -126,6 +141,7 @@ class JointGraph:
         self._ej: list[int] = []
         self._z: list[Array] = []
         self._info: list[Array] = []
+        self._is_loop: list[bool] = []
         self.loops: list[LoopRow] = []
         self._since_solve = 0
         self._loops_pending = False
@@ -167,7 +183,18 @@ class JointGraph:
                 corr = se2.compose(self.poses[last], se2.inverse(self.reported[last]))
                 guess = se2.compose(np.broadcast_to(corr, reported.shape), reported)
             else:
-                guess = reported
+                guess = reported.copy()
+            # better: chain the drone's edge to the previous keyframe (its front end's own pose drifts along the
+            # aisles; the edge fuses odometry, see fleet.drone.keyframe_edge), so a node is placed well before
+            # its first solve
+            step = {e.b: e for e in edges if e.b == e.a + 1}
+            first_id = kfs[0].id
+            for i, k in enumerate(kfs):
+                e = step.get(k.id)
+                if e is None or k.id == 0:
+                    continue
+                prev = guess[i - 1] if k.id - 1 >= first_id else self.poses[own[k.id - 1]]
+                guess[i] = se2.compose(prev, np.asarray(e.z, np.float64))
             first = len(self.poses)
             new = list(range(first, first + len(kfs)))
             self.poses = np.vstack([self.poses, guess])
@@ -183,7 +210,7 @@ class JointGraph:
                 if k.mk:
                     self._add_markers(drone, key, k)
         for e in edges:
-            self._add_factor(own[e.a], own[e.b], e.z, info_matrix(e.info))
+            self._add_factor(own[e.a], own[e.b], e.z, info_matrix(e.info), loop=abs(e.b - e.a) > 1)
             self._loops_pending |= abs(e.b - e.a) > 1
         self._since_solve += len(kfs)
         return new
@@ -222,7 +249,8 @@ class JointGraph:
             out.setdefault(self.marker_ids[s], []).append(d)
         return out
 
-    def _add_factor(self, i: int, j: int, z: Array, info: Array) -> None:
+    def _add_factor(self, i: int, j: int, z: Array, info: Array, *, loop: bool) -> None:
+        self._is_loop.append(loop)
         self._ei.append(i)
         self._ej.append(j)
         self._z.append(np.asarray(z, np.float64))
@@ -231,7 +259,7 @@ class JointGraph:
     def add_loop(self, lp: LoopRow) -> None:
         self.loops.append(lp)
         self._loops_pending = True
-        self._add_factor(self.key(lp.drone_a, lp.a), self.key(lp.drone_b, lp.b), lp.z, lp.info)
+        self._add_factor(self.key(lp.drone_a, lp.a), self.key(lp.drone_b, lp.b), lp.z, lp.info, loop=True)
 
     # ------------------------------------------------------------------ loops
     def search_loops(self, keys: list[int], stamp: float) -> list[LoopRow]:
@@ -308,7 +336,16 @@ class JointGraph:
     # ------------------------------------------------------------------ optimisation
     def needs_solve(self) -> bool:
         c = self.config
-        return (self._loops_pending and self._since_solve >= c.loop_solve_gap) or self._since_solve >= c.solve_every
+        grow = int(c.solve_growth * len(self.poses))  # a solve costs O(nodes): amortised O(1 / solve_growth)
+        return ((self._loops_pending and self._since_solve >= max(c.loop_solve_gap, grow))
+                or self._since_solve >= max(c.solve_every, grow))
+
+    def settle(self, iterations: int = 10) -> SolveRecord | None:
+        """Solve once more if anything arrived since the last solve (a drone landed: its newest keyframes would
+        otherwise keep their first placement until another drone's update brings a solve)."""
+        if self._since_solve == 0 and not self._loops_pending:
+            return None
+        return self.solve(iterations)
 
     def solve(self, iterations: int | None = None) -> SolveRecord:
         """Gauss-Newton on the whole joint graph from the current estimate; marks moved tiles."""
@@ -316,7 +353,12 @@ class JointGraph:
         t0 = time.perf_counter()
         g = FactorGraph()
         if self._ei:
-            g.add_between(np.asarray(self._ei), np.asarray(self._ej), np.asarray(self._z), np.asarray(self._info))
+            ei, ej, z, info = (np.asarray(a) for a in (self._ei, self._ej, self._z, self._info))
+            loop = np.asarray(self._is_loop, bool)
+            for sel, kernel in ((~loop, None), (loop, cfg.loop_kernel)):
+                if sel.any():
+                    g.add_between(ei[sel], ej[sel], z[sel], info[sel], robust=kernel,
+                                  robust_param=cfg.loop_kernel_scale)
         firsts = [own[0] for own in self.keys.values() if own]
         prior_info = np.diag([cfg.prior_sigma_xy_m**-2, cfg.prior_sigma_xy_m**-2, cfg.prior_sigma_theta_rad**-2])
         g.add_prior(np.asarray(firsts), self.reported[firsts], np.repeat(prior_info[None], len(firsts), axis=0))
@@ -360,8 +402,8 @@ class JointGraph:
                 <= radius_m + t]
 
     def tile_raster(self, tile: tuple[int, int], reach_m: float = 12.0) -> bytes:
-        """Hit counts (uint8, saturating) of every keyframe point in ``tile``, zlib-compressed, row-major (y, x);
-        computed once per tile version."""
+        """Hit counts (uint8, saturating) of the keyframe points in ``tile`` (the newest keyframe per place, see
+        :meth:`_newest_per_place`), zlib-compressed, row-major (y, x); computed once per tile version."""
         version = self.tile_version.get(tile, -1)
         hit = self._rasters.get(tile)
         if hit is not None and hit[0] == version:
@@ -376,6 +418,7 @@ class JointGraph:
         lo = np.array(tile, np.float64) * cfg.tile_m
         centre = lo + cfg.tile_m / 2
         near = np.flatnonzero(np.hypot(*(self.poses[:, :2] - centre).T) <= reach_m + cfg.tile_m)
+        near = self._newest_per_place(near)
         counts = np.zeros(n * n, np.int64)
         if near.size:
             world = np.vstack([se2.transform_points(self.poses[k], self.points[k]) for k in near.tolist()])
@@ -383,6 +426,18 @@ class JointGraph:
             inside = np.all((ij >= 0) & (ij < n), axis=1)
             counts = np.bincount(ij[inside, 1] * n + ij[inside, 0], minlength=n * n)
         return zlib.compress(np.minimum(counts, 255).astype(np.uint8).tobytes(), 6)
+
+    def _newest_per_place(self, keys: IntArray) -> IntArray:
+        """Of nodes ``keys``, the newest in each ``raster_place_m`` cell and heading octant: a place flown over
+        again and again adds the same walls, so the raster's work follows the mapped area, not the flight time."""
+        if not keys.size:
+            return keys
+        p = self.poses[keys]
+        cell = np.floor(p[:, :2] / self.config.raster_place_m).astype(np.int64)
+        octant = np.floor((p[:, 2] + np.pi) / (np.pi / 4)).astype(np.int64) % 8
+        place = (cell[:, 0] * 100003 + cell[:, 1]) * 8 + octant
+        _, last = np.unique(place[::-1], return_index=True)  # first of the reversed order = newest
+        return np.sort(keys[::-1][last])
 
     def drone_poses(self, drone: int) -> Array:
         return self.poses[self.keys.get(drone, [])]

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 
 from slam2d.fleet.drone import Drone, DroneConfig
 from slam2d.fleet.joint import JointConfig
+from slam2d.fleet.protocol import encode
 from slam2d.fleet.server import MapServer
 
 Array = NDArray[np.float64]
@@ -43,6 +44,8 @@ def run_local(db: str | Path, drones: int, config: DroneConfig, joint: JointConf
                 reply = server.handle(ident[k], msg)
                 times.append(time.perf_counter() - t0)
                 d.deliver(reply)
+            if k not in active:  # landed: says bye as over the network (the server settles its graph)
+                server.handle(ident[k], encode({"type": "bye"}))
     return LocalRun(server, fleet, times)
 
 

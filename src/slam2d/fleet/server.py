@@ -83,6 +83,7 @@ class MapServer:
                 d = self.by_identity.pop(identity, None)
                 if d is not None:
                     self.drones[d].identity = None
+                    self.joint.settle()
                 reply = {"type": "bye"}
             else:
                 raise ProtocolError("unknown-type", f"unknown message type {kind!r}")
