@@ -380,10 +380,6 @@ class LidarSLAM(EstimatorLifecycle):
         return bool(np.hypot(e[0], e[1]) <= cfg.loop_pair_xy_m and abs(e[2]) <= cfg.loop_pair_theta_rad)
 
     # ------------------------------------------------------------------ maps
-    def _world_points(self, lo: int, hi: int, frame: Array | None = None) -> Array:
-        assert self.graph is not None
-        return self._points_in(self.graph.poses, lo, hi, frame)
-
     def _points_in(self, poses: Array, lo: int, hi: int, frame: Array | None = None) -> Array:
         """The points of keyframes lo..hi-1 placed at ``poses``, in ``frame`` (world when None)."""
         pts = [se2.transform_points(poses[k], self._kf_points[k]) for k in range(max(lo, 0), min(hi, len(poses)))]
@@ -407,7 +403,7 @@ class LidarSLAM(EstimatorLifecycle):
                 self._target = self._target.moved(d[0])
                 self._target_poses, self._target_version = now.copy(), key
                 return self._target
-        self._target = prepare_target(self._world_points(lo, n), self.config.icp)
+        self._target = prepare_target(self._points_in(self.graph.poses, lo, n), self.config.icp)
         self._target_poses, self._target_span, self._target_version = now.copy(), (lo, n), key
         return self._target
 
@@ -530,7 +526,7 @@ class LidarSLAM(EstimatorLifecycle):
         if self.layers is not None:
             return self.layers.static_grid()
         poses = self.keyframe_poses
-        world = self._world_points(0, len(poses))
+        world = self._points_in(poses, 0, len(poses))
         grid = OccupancyGrid.around(np.vstack([world, poses[:, :2]]), 1.0,
                                     OccupancyConfig(resolution_m=resolution_m or self.config.map_resolution_m,
                                                     free_range_cap_m=0.0))
