@@ -2,12 +2,14 @@
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/lidar_backend.py --json lidar_backend.json
     OPENBLAS_NUM_THREADS=1 python benchmarks/lidar_backend.py --logs intel --sim-seeds 0   # one log only
+    OPENBLAS_NUM_THREADS=1 python benchmarks/lidar_backend.py --logs aces --sim-seeds 0 --set loop_queue=12
 
 Per log (one process each, so that peak RSS is the log's own): Kümmerle relation errors (mean +- std, trans and
 rot) of the default ``lidar`` estimator, per-scan latency p50/p99/max (one ``step`` + ``estimate``), the whole-log
-real-time factor (log duration / processing time, finalize included) and peak RSS. Latency and real-time factor
-are given twice: wall clock, and CPU time of the thread (what they are on a core of their own; on a shared machine
-the wall clock also counts the waits for a core). Simulation: ATE of the lidar
+real-time factor (log duration / processing time, finalize included) and peak RSS. ``--set FIELD=VALUE`` (repeatable)
+overrides a ``LidarSLAMConfig`` field on the logs, to measure how much a harmless change moves the relation error.
+Latency and real-time factor are given twice: wall clock, and CPU time of the thread (what they are on a core of
+their own; on a shared machine the wall clock also counts the waits for a core). Simulation: ATE of the lidar
 estimator vs dead reckoning on room and warehouse, and accepted / false loops over ``--sim-seeds`` warehouse
 seeds (identical aisles, a 1200-step drive that revisits them; the runner counts a loop false when its two poses
 are truly > 16 m apart or its measurement is off the truth by > 1 m).
@@ -27,13 +29,13 @@ import numpy as np
 LOGS = ("aces", "intel", "fr079", "mit-csail")
 
 
-def one_log(name: str) -> dict[str, Any]:
+def one_log(name: str, overrides: dict[str, str]) -> dict[str, Any]:
     from slam2d.cli.lidar import laser_outputs, load_laser_log
     from slam2d.lab.registry import make_estimator
     from slam2d.lab.runner import run
 
     log = load_laser_log(name)
-    est = make_estimator("lidar")
+    est = make_estimator("lidar", overrides)
     cpu: list[float] = []  # CPU time of each step + estimate: what the scan costs on a core of its own
     step, estimate = est.step, est.estimate
 
@@ -99,10 +101,15 @@ def main() -> None:
     ap.add_argument("--logs", default=",".join(LOGS), help="comma-separated Radish logs (default all four)")
     ap.add_argument("--sim-seeds", type=int, default=10, help="warehouse seeds for the false-loop count (default 10)")
     ap.add_argument("--json", default=None, help="write all records as JSON")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="override a LidarSLAMConfig field on the logs (repeatable), e.g. loop_queue=12")
     args = ap.parse_args()
+    from slam2d.config import parse_set_args
+
+    overrides = parse_set_args(args.set)
     records: dict[str, Any] = {"logs": [], "sim": []}
     for name in [n for n in args.logs.split(",") if n]:
-        r = _isolated(one_log, name)
+        r = _isolated(one_log, name, overrides)
         records["logs"].append(r)
         print(f"{name:10s} rel {r['rel_trans_mean_m']:.4f} +- {r['rel_trans_std_m']:.4f} m  "
               f"{r['rel_rot_mean_deg']:.3f} +- {r['rel_rot_std_deg']:.3f} deg | latency p50 {r['latency_ms_p50']:.1f} "

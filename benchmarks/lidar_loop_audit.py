@@ -34,11 +34,10 @@ class _Audited(LidarSLAM):
         super().reset(initial_pose, rng=rng)
         self.verified: list[tuple[int, int, LoopCheck, Any]] = []
 
-    def _check_candidate(self, c: int, k: int, pose: Any, pts: Any) -> LoopCheck:
-        chk = super()._check_candidate(c, k, pose, pts)
+    def _check_candidate(self, c: int, k: int, poses: Any) -> LoopCheck:
+        chk = super()._check_candidate(c, k, poses)
         if chk.ok:
-            assert self.graph is not None
-            self.verified.append((self._kf_step[c], self._kf_step[k], chk, se2.between(self.graph.poses[c], pose)))
+            self.verified.append((self._kf_step[c], self._kf_step[k], chk, se2.between(poses[c], poses[k])))
         return chk
 
 

@@ -143,3 +143,48 @@ def test_loop_work_is_bounded_per_scan_and_finalize_verifies_what_is_left() -> N
     small = LidarSLAM(replace(cfg, loop_queue=2))
     run(small, log, rng=np.random.default_rng(0), progress=False)
     assert small.loops_dropped > 0
+
+
+def test_a_queued_candidate_is_decided_the_same_whenever_it_is_verified() -> None:
+    """A loop candidate carries the keyframe poses of the moment it was queued: verified at once or scans later,
+    after the graph has moved, it gets the same check (guess, local maps, result) bit for bit."""
+    log = simulate("room", seed=3, steps=300)
+    est = LidarSLAM(LidarSLAMConfig(loop_every=1, loop_candidates=4, loop_min_separation=10))
+    est.reset(log.initial_pose, rng=np.random.default_rng(0))
+    entry, first, i = None, None, 1
+    while entry is None and i <= log.num_steps:
+        est.step(log.step(i))
+        i += 1
+        for e in est._queue:
+            chk = est._check_candidate(*e[:3])
+            if chk.ok:
+                entry, first = e, chk
+                break
+    assert entry is not None and first is not None, "no verifiable candidate in the room drive"
+    c, k, snap = entry[:3]
+    for _ in range(40):
+        est.step(log.step(i))
+        i += 1
+    assert est.graph is not None
+    assert np.abs(est.graph.poses[:len(snap)] - snap).max() > 1e-4  # the graph moved in between
+    later = est._check_candidate(c, k, snap)
+    assert later.ok and np.array_equal(later.transform, first.transform)
+    assert np.array_equal(later.information, first.information) and later.score == first.score
+
+
+def test_loops_do_not_depend_on_when_candidates_are_verified() -> None:
+    """All candidates verified in the scan that queued them, or one per scan: the same loops, the same
+    measurements, the same trajectory (decisions enter the graph a fixed number of scans after queueing)."""
+    log = simulate("room", seed=3, steps=300)
+    cfg = LidarSLAMConfig(loop_min_separation=10)
+    runs = []
+    for per_scan in (cfg.loop_queue, 1):
+        est = LidarSLAM(replace(cfg, loop_verify_per_scan=per_scan))
+        res = run(est, log, rng=np.random.default_rng(0), progress=False)
+        assert est.loops_dropped == 0
+        runs.append((res, est.loops_accepted))
+    (at_once, n_once), (spread, n_spread) = runs
+    assert n_once == n_spread > 10
+    key = [[(lp.a, lp.b, lp.accepted, tuple(lp.T_a_b)) for lp in r.loops] for r in (at_once, spread)]
+    assert key[0] == key[1]
+    assert np.array_equal(at_once.trajectory, spread.trajectory)

@@ -17,7 +17,9 @@ Per step (one scan):
    chi-square gate on the ICP covariance between the correlative and ICP results; a loop in a self-similar place
    (ambiguity above ``loop_static_ambiguity``) is verified again on static structure only, the points no other
    keyframe contradicts (:mod:`slam2d.graph.lidar_loops`: along an aisle a moving forklift can be all that breaks
-   the tie); a verified loop enters the graph once a second one agrees with it;
+   the tie); a verified loop is accepted once a second one agrees with it. A candidate is verified against the
+   keyframe poses of the moment it was queued, and its decision enters the graph a fixed ``loop_queue`` scans
+   later, so the results do not depend on how the verifications were spread over scans;
 4. the keyframe and its edges enter :class:`~slam2d.graph.incremental.IncrementalPoseGraph`: a local solve when a
    loop enters, then ``loop_full_iterations`` whole-graph Gauss-Newton iterations, one per scan, a whole-graph
    iteration every ``graph.full_every`` keyframes, the whole graph to convergence in ``finalize`` (bounded work per
@@ -108,7 +110,10 @@ class LidarSLAM(EstimatorLifecycle):
         self._new_loops: tuple[LoopEvent, ...] = ()
         # verified loops of the last ``loop_pair_keyframes`` keyframes: (old kf, new kf, T, information, accepted)
         self._pool: list[tuple[int, int, Array, Array, bool]] = []
-        self._queue: deque[tuple[int, int]] = deque()  # loop candidates (old kf, new kf) awaiting verification
+        # loop candidates awaiting verification: (old kf, new kf, the keyframe poses when they were queued, the
+        # scan their decision enters the graph), and decisions awaiting that scan: (scan, events, loops to enter)
+        self._queue: deque[tuple[int, int, Array, int]] = deque()
+        self._decided: deque[tuple[int, list[LoopEvent], list[tuple[int, int, Array, Array]]]] = deque()
         self._full_pending = 0  # whole-graph Gauss-Newton iterations still owed after a loop
         self.loops_dropped = 0  # candidates dropped unverified because the queue was full
         self.tracking_failures = 0
@@ -287,32 +292,48 @@ class LidarSLAM(EstimatorLifecycle):
             self._version += 1
         self._pose = self.graph.poses[-1].copy()
         if cfg.loop_closure and k % cfg.loop_every == 0:
-            for c in self._loop_candidates(k, pose):
+            cands = self._loop_candidates(k, pose)
+            snap = self.graph.poses.copy() if cands else None  # what a verification right now would see
+            for c in cands:
                 if len(self._queue) >= cfg.loop_queue:
-                    self._queue.popleft()  # the oldest waiting candidate: its keyframe has moved on the most
+                    self._queue.popleft()  # the oldest waiting candidate
                     self.loops_dropped += 1
-                self._queue.append((c, k))
+                assert snap is not None
+                self._queue.append((c, k, snap, self.steps + cfg.loop_queue))
 
     # ------------------------------------------------------------------ loop work, bounded per scan
-    def _loop_work(self, verifications: int) -> None:
-        """One scan's share of the loop work: one whole-graph Gauss-Newton iteration if a loop still owes some,
-        and at most ``verifications`` queued candidates verified (each accepted loop is a local solve). Loop
-        candidates are found when a keyframe is made but verified over the next scans, so no scan pays for a
-        whole search (a 30 Hz lidar leaves 33 ms per scan)."""
+    def _loop_work(self, verifications: int, *, flush: bool = False) -> None:
+        """One scan's share of the loop work: one whole-graph Gauss-Newton iteration if a loop still owes some, at
+        most ``verifications`` queued candidates verified and decided, and the decisions that are due entered
+        (each accepted loop is a local solve; ``flush``: every decision now). Loop candidates are found when a
+        keyframe is made but verified over the next scans, so no scan pays for a whole search (a 30 Hz lidar
+        leaves 33 ms per scan).
+
+        Schedule independence: a candidate is verified against the keyframe poses of the moment it was queued,
+        and its decision enters the graph exactly ``loop_queue`` scans after that moment, however many scans its
+        verification waited (with one verification per scan a candidate always reaches the front of the queue
+        before then). So the graph every later candidate is found and verified in is the same whether candidates
+        are verified at once or spread over scans: the accepted loops and their measurements do not depend on
+        the schedule (unless the queue overflows and drops candidates, which is counted)."""
         assert self.graph is not None
-        events: list[LoopEvent] = []
         moved = False
         if self._full_pending:
             summary = self.graph.solve_full(1)
             # converged (the step changed the cost too little): the rest of the owed iterations are not needed
             self._full_pending = 0 if summary.termination != "max iterations" else self._full_pending - 1
             moved = True
-        for _ in range(verifications):
-            if not self._queue:
-                break
-            c, k = self._queue.popleft()
-            t_ck, info, ok = self._verify_candidate(c, k, self.graph.poses[k], self._kf_points[k])
-            if self._decide(c, k, t_ck, info, ok, events):
+        done = 0
+        while self._queue and (done < verifications or flush or self._queue[0][3] <= self.steps):
+            c, k, snap, due = self._queue.popleft()
+            t_ck, info, ok = self._verify_candidate(c, k, snap)
+            self._decided.append((due, *self._decide(c, k, t_ck, info, ok, snap)))
+            done += 1
+        events: list[LoopEvent] = []
+        while self._decided and (flush or self._decided[0][0] <= self.steps):
+            _, evs, loops = self._decided.popleft()
+            events += evs
+            for c, k, t_ck, info in loops:
+                self.graph.add_loop(c, k, t_ck, info)
                 moved = True
                 self._full_pending = self.config.loop_full_iterations
         self.loops_accepted += sum(e.accepted for e in events)
@@ -322,49 +343,45 @@ class LidarSLAM(EstimatorLifecycle):
             self._version += 1
             self._pose = se2.compose(self.graph.poses[self._owner[-1]], self._rel[-1])
 
-    def _decide(self, c: int, k: int, t_ck: Array, info: Array, ok: bool, events: list[LoopEvent]) -> bool:
+    def _decide(self, c: int, k: int, t_ck: Array, info: Array, ok: bool,
+                snap: Array) -> tuple[list[LoopEvent], list[tuple[int, int, Array, Array]]]:
         """Accept a verified loop (c, k) once another verified loop agrees with it (``loop_confirmations``); a
-        waiting loop that this one confirms enters too. Appends the decisions to ``events``; True when loops
-        entered the graph."""
-        assert self.graph is not None
+        waiting loop that this one confirms enters too. ``snap``: the keyframe poses when (c, k) was queued.
+        Returns the decisions and the loops (old kf, new kf, T, information) to enter the graph."""
         cfg = self.config
-        pose = self.graph.poses[k]
         self._pool = [q for q in self._pool if k - q[1] <= cfg.loop_pair_keyframes]
-        partners = [q for q in self._pool if self._consistent(q, (c, k, t_ck), pose)] if ok else []
+        partners = [q for q in self._pool if self._consistent(q, (c, k, t_ck), snap)] if ok else []
         accept = ok and (cfg.loop_confirmations == 0 or bool(partners))
-        events.append(LoopEvent(self._kf_step[c], self._kf_step[k], accept, t_ck))
-        if accept:
-            self.graph.add_loop(c, k, t_ck, info)
+        events = [LoopEvent(self._kf_step[c], self._kf_step[k], accept, t_ck)]
+        loops = [(c, k, t_ck, info)] if accept else []
         for q in partners:
             if not q[4]:  # a waiting loop confirmed by this one enters the graph too
-                self.graph.add_loop(q[0], q[1], q[2], q[3])
+                loops.append((q[0], q[1], q[2], q[3]))
                 events.append(LoopEvent(self._kf_step[q[0]], self._kf_step[q[1]], True, q[2]))
                 self._pool[self._pool.index(q)] = (*q[:4], True)
                 accept = True
         if ok:
             self._pool.append((c, k, t_ck, info, accept))
-        return accept
+        return events, loops
 
-    def _consistent(self, old: tuple[int, int, Array, Array, bool], new: tuple[int, int, Array], pose: Array) -> bool:
+    def _consistent(self, old: tuple[int, int, Array, Array, bool], new: tuple[int, int, Array], p: Array) -> bool:
         """Do two verified loops (c1, k1, T_c1_k1) and (c2, k, T_c2_k) agree? Going from c1 to the new keyframe
         through the first loop and the tracked chain must land where the old chain c1 -> c2 and the second loop
-        put it (a wrong loop among identical places agrees with a right one only by accident)."""
-        assert self.graph is not None
+        put it (a wrong loop among identical places agrees with a right one only by accident). ``p``: the keyframe
+        poses when the second loop was queued (k1 <= k2, so they hold every keyframe involved)."""
         cfg = self.config
         c1, k1, t1 = old[0], old[1], old[2]
         c2, k2, t2 = new
         if c1 == c2 and k1 == k2:
             return False
-        p = self.graph.poses
-        lhs = t1 if k1 == k2 else se2.compose(t1, se2.between(p[k1], pose))
+        lhs = t1 if k1 == k2 else se2.compose(t1, se2.between(p[k1], p[k2]))
         rhs = se2.compose(se2.between(p[c1], p[c2]), t2)
         e = se2.local(lhs, rhs)
         return bool(np.hypot(e[0], e[1]) <= cfg.loop_pair_xy_m and abs(e[2]) <= cfg.loop_pair_theta_rad)
 
     # ------------------------------------------------------------------ maps
-    def _world_points(self, lo: int, hi: int, frame: Array | None = None) -> Array:
-        assert self.graph is not None
-        poses = self.graph.poses
+    def _points_in(self, poses: Array, lo: int, hi: int, frame: Array | None = None) -> Array:
+        """The points of keyframes lo..hi-1 placed at ``poses``, in ``frame`` (world when None)."""
         pts = [se2.transform_points(poses[k], self._kf_points[k]) for k in range(max(lo, 0), min(hi, len(poses)))]
         out = np.vstack(pts) if pts else np.zeros((0, 2))
         return out if frame is None else se2.inverse_transform_points(frame, out)
@@ -386,7 +403,7 @@ class LidarSLAM(EstimatorLifecycle):
                 self._target = self._target.moved(d[0])
                 self._target_poses, self._target_version = now.copy(), key
                 return self._target
-        self._target = prepare_target(self._world_points(lo, n), self.config.icp)
+        self._target = prepare_target(self._points_in(self.graph.poses, lo, n), self.config.icp)
         self._target_poses, self._target_span, self._target_version = now.copy(), (lo, n), key
         return self._target
 
@@ -411,31 +428,34 @@ class LidarSLAM(EstimatorLifecycle):
                 break
         return cand
 
-    def _search_loops(self, k: int, pose: Array, pts: Array) -> list[tuple[int, Array, Array, bool]]:
+    def _search_loops(self, k: int) -> list[tuple[int, Array, Array, bool]]:
         """Verify every candidate of keyframe ``k`` now: (old keyframe, T_old_new, information, ok)."""
-        return [(c, *self._verify_candidate(c, k, pose, pts)) for c in self._loop_candidates(k, pose)]
+        assert self.graph is not None
+        snap = self.graph.poses.copy()
+        return [(c, *self._verify_candidate(c, k, snap)) for c in self._loop_candidates(k, snap[k])]
 
-    def _verify_candidate(self, c: int, k: int, pose: Array, pts: Array) -> tuple[Array, Array, bool]:
-        """Verify old keyframe ``c`` as a loop of new keyframe ``k`` at ``pose`` (scan points ``pts``):
-        (T_c_k, information, ok)."""
-        chk = self._check_candidate(c, k, pose, pts)
+    def _verify_candidate(self, c: int, k: int, poses: Array) -> tuple[Array, Array, bool]:
+        """Verify old keyframe ``c`` as a loop of new keyframe ``k``: (T_c_k, information, ok)."""
+        chk = self._check_candidate(c, k, poses)
         return chk.transform, chk.information, chk.ok
 
-    def _check_candidate(self, c: int, k: int, pose: Array, pts: Array) -> LoopCheck:
-        """Every gate of a loop candidate, with the values it saw (:mod:`slam2d.graph.lidar_loops`)."""
-        assert self.graph is not None
+    def _check_candidate(self, c: int, k: int, poses: Array) -> LoopCheck:
+        """Every gate of a loop candidate, with the values it saw (:mod:`slam2d.graph.lidar_loops`). ``poses``
+        are the keyframe poses when the candidate was queued: the guess, the old local map and the new keyframe's
+        neighbours all come from them, so a candidate verified scans later is decided exactly as it would have
+        been at once (the graph moves in between; with the current poses, acceptance depended on the schedule)."""
         cfg = self.config
-        m, poses = cfg.loop_map_keyframes, self.graph.poses
+        m, pose, pts = cfg.loop_map_keyframes, poses[k], self._kf_points[k]
         guess = se2.between(poses[c], pose)
-        target = self._world_points(c - m, c + m + 1, frame=poses[c])
+        target = self._points_in(poses, c - m, c + m + 1, poses[c])
         chk = verify_loop(pts, target, guess, cfg)
         if cfg.loop_static_radius_m > 0 and chk.ok and chk.ambiguity > cfg.loop_static_ambiguity:
             # a self-similar place: verify again on what two keyframes saw on the same surface (a moving object
             # may be all that breaks the tie): the old keyframe's local map, the new scan against the keyframes
             # just before it
             r, a, s = cfg.loop_static_radius_m, cfg.loop_static_normal_rad, cfg.loop_static_seen_m
-            old = [self._world_points(j, j + 1, frame=poses[c]) for j in range(max(c - m, 0), min(c + m + 1, k))]
-            new = [pts] + [self._world_points(j, j + 1, frame=pose) for j in range(max(k - m, 0), k)]
+            old = [self._points_in(poses, j, j + 1, poses[c]) for j in range(max(c - m, 0), min(c + m + 1, k))]
+            new = [pts] + [self._points_in(poses, j, j + 1, pose) for j in range(max(k - m, 0), k)]
             static_pts = pts[confirmed_mask(new, r, a, s)[:len(pts)]]
             chk = verify_loop(static_pts, np.vstack(old)[confirmed_mask(old, r, a, s)], guess, cfg)
         return chk
@@ -447,7 +467,7 @@ class LidarSLAM(EstimatorLifecycle):
         if self.graph is None or len(self._kf_step) < 2:
             return False
         k = len(self._kf_step) - 1
-        found = [r for r in self._search_loops(k, self.graph.poses[k], self._kf_points[k]) if r[3]]
+        found = [r for r in self._search_loops(k) if r[3]]
         events = [LoopEvent(self._kf_step[c], self._kf_step[k], True, t) for c, t, _, _ in found]
         if found:
             # the incremental graph takes edges only with a new pose: re-anchor through a whole-graph solve
@@ -492,8 +512,7 @@ class LidarSLAM(EstimatorLifecycle):
     def finalize(self) -> None:
         if self._lifecycle_finalize() and self.graph is not None and self.graph.num_poses > 1 \
                 and self.layers is None:
-            while self._queue:  # the candidates of the last keyframes are still owed a verification
-                self._loop_work(len(self._queue))
+            self._loop_work(0, flush=True)  # the candidates of the last keyframes are still owed a decision
             self.graph.finalize()
             self._version += 1
             self._pose = self.trajectory()[-1].copy()
@@ -507,7 +526,7 @@ class LidarSLAM(EstimatorLifecycle):
         if self.layers is not None:
             return self.layers.static_grid()
         poses = self.keyframe_poses
-        world = self._world_points(0, len(poses))
+        world = self._points_in(poses, 0, len(poses))
         grid = OccupancyGrid.around(np.vstack([world, poses[:, :2]]), 1.0,
                                     OccupancyConfig(resolution_m=resolution_m or self.config.map_resolution_m,
                                                     free_range_cap_m=0.0))
