@@ -38,13 +38,14 @@ def _half_turn(p):
     return np.array([2 * CENTRE[0] - p[0], 2 * CENTRE[1] - p[1], wrap_angle(p[2] + np.pi)])
 
 
-def _room_map(with_markers: bool) -> MapSnapshot:
+def room_map(with_markers: bool, walls: np.ndarray = WALLS, keyframes_to_x: float = 19.0) -> MapSnapshot:
+    """A saved map of a 20 x 10 m room drawn from ``walls``: keyframes on a 1 m grid up to x = ``keyframes_to_x``,
+    the floor markers when asked."""
     grid = OccupancyGrid((-1.0, -1.0, 21.0, 11.0), OccupancyConfig(resolution_m=0.05))
-    occ = rasterize_segments(grid, WALLS)
-    logodds = np.where(occ, 3.5, -2.0).astype(np.float32)
-    gx, gy = np.meshgrid(np.arange(1.5, 19, 1.0), np.arange(1.5, 9, 1.0))
+    logodds = np.where(rasterize_segments(grid, walls), 3.5, -2.0).astype(np.float32)
+    gx, gy = np.meshgrid(np.arange(1.5, keyframes_to_x, 1.0), np.arange(1.5, 9, 1.0))
     poses = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=-1)
-    scans = np.stack([cast_rays(p, ANGLES, WALLS, 30.0) for p in poses]).astype(np.float32)
+    scans = np.stack([cast_rays(p, ANGLES, walls, 30.0) for p in poses]).astype(np.float32)
     n = len(poses)
     return MapSnapshot(
         world_id="test:room", keyframe_poses=poses, keyframe_scans=scans, descriptors=range_histogram(scans, 30.0),
@@ -73,7 +74,7 @@ def _drive(start, steps=70, speed=1.0, dt=0.1, turn=0.0, seed=0):
 
 
 def test_a_symmetric_room_without_markers_stays_undecided_with_both_answers_kept():
-    snap = _room_map(with_markers=False)
+    snap = room_map(with_markers=False)
     steps, truth = _drive([3.0, 2.0, 0.0], steps=50)
     rel = Relocaliser(snap, rng=np.random.default_rng(0))
     for st in steps:
@@ -88,7 +89,7 @@ def test_a_symmetric_room_without_markers_stays_undecided_with_both_answers_kept
 
 
 def test_two_id_markers_break_the_symmetry_and_the_right_pose_is_accepted():
-    snap = _room_map(with_markers=True)
+    snap = room_map(with_markers=True)
     steps, truth = _drive([3.0, 2.0, 0.0])
     rel = Relocaliser(snap, rng=np.random.default_rng(0))
     decided = None

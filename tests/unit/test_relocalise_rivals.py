@@ -9,40 +9,26 @@ markers and accept the right pose with them; an asymmetric room accepts without 
 import numpy as np
 import pytest
 from scipy import ndimage
+from test_relocalise import ANGLES, MARKERS, room_map
 
 from slam2d.frontend.relocalise import RelocaliseConfig, Relocaliser
 from slam2d.frontend.relocalise_search import CorrelativeSearch
 from slam2d.geometry import se2
 from slam2d.log import MarkerReadings, Observations, Scan, Step
-from slam2d.maps.occupancy import OccupancyConfig, OccupancyGrid, rasterize_segments
-from slam2d.maps.store import MapSnapshot, range_histogram
+from slam2d.maps.store import MapSnapshot
 from slam2d.models.floor_markers import marker_in_robot
 from slam2d.models.lidar import cast_rays
 from slam2d.sim.world import box_walls
 
-BEAMS = 360
-ANGLES = np.linspace(-np.pi * (BEAMS - 1) / BEAMS, np.pi * (BEAMS - 1) / BEAMS, BEAMS)
 SYMMETRIC = np.vstack([box_walls(0, 0, 20, 10), box_walls(5, 3, 6, 4), box_walls(14, 6, 15, 7),
                        box_walls(3, 6, 4, 7.5), box_walls(16, 2.5, 17, 4)])
 # the same room with its right half's pillars elsewhere and a partition: no half-turn image of the left half
 ASYMMETRIC = np.vstack([box_walls(0, 0, 20, 10), box_walls(5, 3, 6, 4), box_walls(3, 6, 4, 7.5),
                         box_walls(12, 1, 12.5, 5), box_walls(15, 7.5, 18, 8), box_walls(17, 2, 18, 3)])
-MARKERS = np.array([[5.5, 2.0], [14.5, 8.0]])
 
 
 def _room(walls, with_markers: bool, left_half_only: bool) -> MapSnapshot:
-    grid = OccupancyGrid((-1.0, -1.0, 21.0, 11.0), OccupancyConfig(resolution_m=0.05))
-    logodds = np.where(rasterize_segments(grid, walls), 3.5, -2.0).astype(np.float32)
-    gx, gy = np.meshgrid(np.arange(1.5, 9.6 if left_half_only else 19, 1.0), np.arange(1.5, 9, 1.0))
-    poses = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=-1)
-    scans = np.stack([cast_rays(p, ANGLES, walls, 30.0) for p in poses]).astype(np.float32)
-    n = len(poses)
-    return MapSnapshot(
-        world_id="test:room", keyframe_poses=poses, keyframe_scans=scans, descriptors=range_histogram(scans, 30.0),
-        scan_angles_rad=ANGLES, scan_max_range_m=30.0, node_ids=np.arange(n, dtype=np.int64), node_poses=poses,
-        edge_nodes=np.zeros((0, 2), np.int64), edge_poses=np.zeros((0, 3)), edge_information=np.zeros((0, 3, 3)),
-        occupancy_logodds=logodds, occupancy_origin=grid.origin.copy(), occupancy_resolution_m=0.05,
-        layers={"floor_markers": MARKERS.copy()} if with_markers else {})
+    return room_map(with_markers, walls, 9.6 if left_half_only else 19.0)
 
 
 def _drive(walls, start, steps=50, seed=0):
