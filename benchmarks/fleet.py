@@ -161,7 +161,8 @@ def network_run(args: argparse.Namespace, work: Path) -> dict[str, Any]:
         key = f"{min(lp['a'][0], lp['b'][0])}-{max(lp['a'][0], lp['b'][0])}"
         pairs[key] = pairs.get(key, 0) + 1
     return {"drones": rows, "inter_robot_loops": len(loops), "loops_by_pair": pairs, "kill": kill,
-            "wall_s": round(wall, 1), "server_errors": final["errors"], "markers": final.get("markers")}
+            "wall_s": round(wall, 1), "server_errors": final["errors"],
+            "server_errors_by_code": final.get("errors_by_code"), "markers": final.get("markers")}
 
 
 def marker_survey(scenario: str, sigma_m: float, seed: int) -> tuple[tuple[int, float, float], ...]:

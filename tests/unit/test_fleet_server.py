@@ -66,11 +66,13 @@ def server(tmp_path: Path) -> MapServer:
 
 def refused(server: MapServer, ident: bytes, data: bytes, code: str) -> dict[str, Any]:
     before = counts(server)
+    by_code = server.status()["errors_by_code"].get(code, 0)
     reply = decode(server.handle(ident, data))
     assert reply["type"] == "error", reply
     assert reply["code"] == code, reply
     assert reply["message"]
     assert counts(server) == before  # nothing written
+    assert server.status()["errors_by_code"][code] == by_code + 1  # the status says why it refused
     return reply
 
 

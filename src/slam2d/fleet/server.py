@@ -13,6 +13,7 @@ from __future__ import annotations
 import signal
 import threading
 import time
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -53,7 +54,7 @@ class MapServer:
         self.joint = JointGraph(config)
         self.drones: dict[int, _DroneState] = {}
         self.by_identity: dict[bytes, int] = {}
-        self.errors = 0
+        self.errors: Counter[str] = Counter()  # refusals by code (status reports them, so a run can say why)
         self.started = time.time()
         for row in self.journal.drones():  # rebuild from what was committed
             self.drones[row.drone] = _DroneState(row.session, row.acked_seq, row.keyframes)
@@ -88,7 +89,7 @@ class MapServer:
             else:
                 raise ProtocolError("unknown-type", f"unknown message type {kind!r}")
         except ProtocolError as e:
-            self.errors += 1
+            self.errors[e.code] += 1
             reply = {"type": "error", "code": e.code, "message": str(e)}
             if e.seq is not None:
                 reply["seq"] = e.seq
@@ -202,7 +203,8 @@ class MapServer:
         shared = sum(len(ds) > 1 for ds in j.marker_drones().values())
         markers = {"count": len(j.marker_ids), "shared": shared, "sightings": len(j._mk_key),
                    "links": j.marker_links, "resightings": j.marker_resightings}
-        return {"type": "status", "drones": drones, "loops": loops, "errors": self.errors, "markers": markers,
+        return {"type": "status", "drones": drones, "loops": loops, "errors": sum(self.errors.values()),
+                "errors_by_code": dict(self.errors), "markers": markers,
                 "solves": [[s.nodes, s.edges, round(s.seconds, 5)] for s in solves],
                 "uptime_s": round(now - self.started, 1)}
 
