@@ -19,8 +19,8 @@ from typing import Any
 
 import numpy as np
 
-from slam2d.eval.trajectory import ate
 from slam2d.eval.consistency import monte_carlo_consistency, pose_error
+from slam2d.eval.trajectory import ate
 from slam2d.lab.registry import make_estimator
 from slam2d.log import Log
 from slam2d.sim.simulator import simulate
