@@ -27,7 +27,7 @@ STEPS = 200
 POWER_STEPS = 100  # the shrunk-noise runs fail by a wide margin; half the steps keep CI short
 
 #: FastSLAM's particle spread is overconfident once the particles' paths coalesce (Bailey, Nieto & Nebot, "Consistency
-#: of the FastSLAM algorithm", ICRA 2006: measured here, 30 seeds x 200 steps, mean NEES 69 room / 449 loop, 6 % / 2 %
+#: of the FastSLAM algorithm", ICRA 2006: measured here, 30 seeds x 200 steps, mean NEES 69 room / 449 loop, 6 % / 4 %
 #: of steps inside); what is tested is the covariance it reports with pose_cov="linearised" (EKF-SLAM's covariance
 #: recursion at FastSLAM's own estimate plus what the particle cloud misses, slam2d.filters.fastslam_marginal)
 REPORTED: dict[str, dict[str, Any]] = {"fastslam2": {"pose_cov": "linearised"}}
