@@ -10,7 +10,10 @@ What: the covariance half of EKF-SLAM over ``[pose, landmarks]`` -- predict ``P_
 ``G_r``, ``G_z`` -- with every Jacobian evaluated at FastSLAM's estimate (its mean pose and its landmark means)
 instead of at an EKF's own mean. No state is propagated here: only the covariance, which the noise models the
 filter assumes determine together with the linearisation points. Its pose block is the Gaussian (Laplace)
-approximation of the posterior marginal of the current pose around FastSLAM's own path and map.
+approximation of the posterior marginal of the current pose around FastSLAM's own path and map. Landmarks keep
+their first linearisation point and the motion Jacobian uses the displacement between consecutive estimates
+(first-estimate Jacobians), so no spurious information about the global frame appears. What FastSLAM reports is
+``L + (L - C)_+`` (:meth:`LinearisedMarginal.reported_pose_cov`, C: the particle covariance).
 
 Cost: O(n^2) per observation with n = 3 + 2N (EKF-SLAM's cost), so it is an option, not FastSLAM's default. Landmarks
 are keyed by the filter's slot number, which names the same landmark in every particle only with known association.
