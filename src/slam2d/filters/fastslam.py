@@ -49,7 +49,8 @@ fancy indexing, so no two particles ever share memory. When every weight is zero
 e.g. after an absurd outlier), the filter resets to uniform weights and counts it in ``diagnostics.weight_resets``.
 
 Snapshot: ``pose`` is the weighted mean of the particle poses (circular mean for the heading) computed before
-resampling; ``pose_cov`` the weighted sample covariance around it; the map (landmarks, covariances, ids) is the one
+resampling; ``pose_cov`` the weighted sample covariance around it (``FastSLAMConfig.pose_cov="linearised"``: the
+honest covariance of :mod:`slam2d.filters.fastslam_marginal` instead); the map (landmarks, covariances, ids) is the one
 of the particle with the highest weight before resampling (followed through resampling to one of its copies):
 its confirmed landmarks; its tentative ones are ``tentative_landmarks`` / ``tentative_ids``. Landmark ids are the
 source's ids for known association, the particle's slot numbers otherwise.
@@ -76,6 +77,7 @@ from slam2d.association.base import AssociationConfig, resolve_method
 from slam2d.association.tracks import TrackConfig, in_view
 from slam2d.config import check_positive, check_probability
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, ParticleView
+from slam2d.filters.fastslam_marginal import LinearisedMarginal
 from slam2d.filters.fastslam_particles import (
     ParticleSet,
     _congruence2,
@@ -163,6 +165,11 @@ class FastSLAMConfig:
     runs, worse on 5. Simulated (p_d = 1, no clutter; 5 seeds, mean ATE in m, 1.0 / 2.0): room 0.024 / 0.027
     against 0.023 / 0.026, warehouse 0.067 / 0.081 against 0.069 / 0.074, loop 0.45 / 0.70 against 0.40 / 0.58.
     Victoria Park was held out (README)."""
+    pose_cov: str = "particles"
+    """what ``pose_cov`` reports. ``"particles"``: the weighted particle covariance (cheap, and overconfident once
+    the particles' paths coalesce). ``"linearised"``: known association only; EKF-SLAM's covariance recursion run at
+    this filter's own estimate, plus the part of it the particle cloud no longer spans
+    (:mod:`slam2d.filters.fastslam_marginal`); O(N^2) per observation like EKF-SLAM; the estimate is unchanged."""
     view_margin_m: float = 0.5
     """"well inside the view": predicted range <= max_range_m - view_margin_m (and inside the field of view)."""
     dynamic_test: bool = False
@@ -174,6 +181,9 @@ class FastSLAMConfig:
         if self.version not in (1, 2):
             raise ValueError(f"{type(self).__name__}.version must be 1 or 2 (got {self.version!r})")
         check_probability(self, "resample_threshold")
+        if self.pose_cov not in ("particles", "linearised"):
+            raise ValueError(f"{type(self).__name__}.pose_cov must be 'particles' or 'linearised' "
+                             f"(got {self.pose_cov!r})")
         check_positive(self, "new_landmark_likelihood", "candidate_margin_m", "motion_noise_scale")
         if not isinstance(self.association_candidates, int) or self.association_candidates < 1:
             raise ValueError(f"{type(self).__name__}.association_candidates must be an integer >= 1 "
@@ -238,6 +248,7 @@ class FastSLAM(EstimatorLifecycle):
         self._resampled = False
         self._weight_resets = 0
         self._assoc_out = np.zeros(0, dtype=np.int64)
+        self._marginal: LinearisedMarginal | None = None
         self._r = self.config.sensor.covariance
         self._assoc = self.config.association
         self._t = 0
@@ -276,6 +287,7 @@ class FastSLAM(EstimatorLifecycle):
         self._resampled = False
         self._weight_resets = 0
         self._assoc_out = np.zeros(0, dtype=np.int64)
+        self._marginal = LinearisedMarginal(pose, self._r) if self.config.pose_cov == "linearised" else None
         self._lifecycle_reset()
 
     # -- association ---------------------------------------------------------------------------------------------
@@ -409,6 +421,9 @@ class FastSLAM(EstimatorLifecycle):
         if self._assoc.method == "auto" and len(obs):
             self._assoc = resolve_method(self._assoc, bool(np.any(obs.landmark_id >= 0)))
             p.tracks.config = self.config.tracks(known=self.known)
+        if self._marginal is not None and self._assoc.method != "auto" and not self.known:
+            raise ValueError("FastSLAMConfig.pose_cov='linearised' needs known association (per-particle ML gives "
+                             f"each particle its own landmarks); association method is {self._assoc.method!r}")
         ids = np.asarray(obs.landmark_id, dtype=np.int64)
         use = np.flatnonzero(ids >= 0) if self.known else np.arange(len(obs))
         m = p.size
@@ -493,6 +508,11 @@ class FastSLAM(EstimatorLifecycle):
         w = np.exp(lw)
         self._n_eff = effective_sample_size(w)
         self._pose, self._pose_cov = weighted_pose_stats(p.poses, w)
+        if self._marginal is not None:
+            slots = assoc_slots[use, 0]
+            self._marginal.step(self._pose, u, noise, slots, np.einsum("m,mkd->kd", w, p.lm_mean[:, slots]),
+                                z_all[use])
+            self._pose_cov = self._marginal.reported_pose_cov(self._pose_cov)
         best = int(np.argmax(w))
         self._resampled = self._n_eff < cfg.resample_threshold * m
         if self._resampled:
