@@ -361,7 +361,9 @@ class MultiGraphSLAM(EstimatorLifecycle):
                 kernel = self.config.loop_robust_kernel
                 g.add_between(i, j, z, info, robust=None if kernel == "none" else kernel)
             elif name == "rb":
-                g.add_range_bearing(i, j, z, info)
+                kernel = "none" if self.config.association.method == "known" else self.config.landmark_robust_kernel
+                g.add_range_bearing(i, j, z, info, robust=None if kernel == "none" else kernel,
+                                    robust_param=np.sqrt(chi2_gate(self.config.association.gate_probability, 2)))
             else:
                 g.add_pose_range_bearing(i, j, z, info)
         return g

@@ -60,6 +60,10 @@ class MultiGraphConfig:
     """a verified loop must agree with the estimate at this chi-square probability (3 dof)."""
     loop_robust_kernel: str = "cauchy"
     """robust kernel on loop-closure factors: none, huber, cauchy or dcs."""
+    landmark_robust_kernel: str = "cauchy"
+    """unknown association: robust kernel on landmark factors (none, huber, cauchy or dcs), its scale the association
+    gate (sqrt of the chi-square(2) quantile at ``association.gate_probability``, in sigmas): a sighting given to the
+    wrong landmark pulls less. Known ids: never."""
     merge_probability: float = 0.99
     """a merge hypothesis passes the chi-square test at this probability."""
     merge_min_pairs: int = 3
@@ -82,9 +86,9 @@ class MultiGraphConfig:
         if not 0 < self.loop_gate_probability < 1:
             raise ValueError(f"MultiGraphConfig.loop_gate_probability must be in (0, 1) (got "
                              f"{self.loop_gate_probability})")
-        if self.loop_robust_kernel not in ("none", "huber", "cauchy", "dcs"):
-            raise ValueError(f"MultiGraphConfig.loop_robust_kernel must be none, huber, cauchy or dcs "
-                             f"(got {self.loop_robust_kernel!r})")
+        for n in ("loop_robust_kernel", "landmark_robust_kernel"):
+            if getattr(self, n) not in ("none", "huber", "cauchy", "dcs"):
+                raise ValueError(f"MultiGraphConfig.{n} must be none, huber, cauchy or dcs (got {getattr(self, n)!r})")
         if not 0 < self.merge_probability < 1:
             raise ValueError(f"MultiGraphConfig.merge_probability must be in (0, 1) (got {self.merge_probability})")
 
