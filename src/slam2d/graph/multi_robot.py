@@ -135,7 +135,8 @@ class MultiGraphSLAM(EstimatorLifecycle):
         self.pending: list[tuple[int, int, int, Array]] = []  # sightings between unmerged groups: (t, o, b, z)
         self.merges: list[MergeEvent] = []
         self.counters = {"optimizations": 0, "sightings_used": 0, "sightings_gated": 0, "landmarks_gated": 0,
-                         "merge_attempts": 0, "merges": 0, "loops_accepted": 0, "loops_rejected": 0}
+                         "merge_attempts": 0, "merges": 0, "loops_accepted": 0, "loops_rejected": 0,
+                         "landmarks_fused": 0}
         self.sighting_R = np.diag([cfg.sighting_range_std_m**2, cfg.sighting_bearing_std_rad**2])
         self._lifecycle_reset()
 
@@ -589,6 +590,6 @@ class MultiGraphSLAM(EstimatorLifecycle):
                 continue  # seen together from one pose: two landmarks
             remap[kb] = ka
             seen_by[ka] |= seen_by[kb]
-        self.counters["landmarks_fused"] = self.counters.get("landmarks_fused", 0) + len(remap)
+        self.counters["landmarks_fused"] += len(remap)
         self._remap_landmarks(remap)
 
