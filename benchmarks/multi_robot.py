@@ -10,6 +10,8 @@ Writes the metrics of ``slam2d.lab.multi_robot.run_multi`` (per-robot ATE, joint
 errors, merge decisions, wall seconds) as JSON; ``--single`` the single-robot online graph SLAM ATE of each robot
 with the same loader defaults (the baseline the joint graph must not be worse than). Thresholds were chosen on
 robots 1-2 (synthetic tests and the first 100 s) and are the library defaults; nothing here is tuned per robot.
+Without ids the landmark factors' robust kernel has the association gate as its scale (the chi-square(2) quantile
+at ``gate_probability``): no number was fitted to MRCLAM.
 """
 
 from __future__ import annotations

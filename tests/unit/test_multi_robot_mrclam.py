@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import os
 
-import numpy as np
 import pytest
 
 from conftest import dataset_path
@@ -60,16 +59,16 @@ def test_unknown_starts_known_ids_merge_all_and_recover_the_starts(mlog, single_
 
 
 def test_known_starts_unknown_association(mlog):
-    """Without the barcode ids the joint graph is NOT better than each robot alone on every robot (robot 1: 0.28 m
-    against 0.14 m); what holds: far below dead reckoning everywhere, every landmark mapped, and a better fleet
-    average than the single-robot graphs without ids (robot 3 alone ends at dead reckoning)."""
+    """Without the barcode ids every robot is at least as good in the joint graph as in its own graph without ids
+    (measured: 0.096 / 0.102 / 0.081 / 0.080 / 0.271 m against 0.133 / 0.164 / 1.896 / 0.533 / 0.562 m), far below
+    dead reckoning, and every landmark is mapped."""
     path = dataset_path("utias-mrclam-7")
     logs = {str(r): load_dataset("mrclam", path, robot=r) for r in (1, 2, 3, 4, 5)}
     alone = {r: run_named("graph", log=lg, seed=0, overrides={"association.method": "mahalanobis"})[1]["ate_rmse_m"]
              for r, lg in logs.items()}
     m = run_multi(mlog, association="mahalanobis").metrics
     for r, lg in logs.items():
+        assert m["ate_rmse_m"][r] <= alone[r], (r, m["ate_rmse_m"], alone)
         dr = run_named("dead-reckoning", log=lg, seed=0)[1]["ate_rmse_m"]
         assert m["ate_rmse_m"][r] < 0.5 * dr, (r, m["ate_rmse_m"][r], dr)
-    assert np.mean(list(m["ate_rmse_m"].values())) < np.mean(list(alone.values())), (m["ate_rmse_m"], alone)
     assert m["map_matched"] == 15

@@ -8,7 +8,10 @@ Landmark sightings are range-bearing factors (association through :func:`slam2d.
 the robot's joint map, as in the single-robot online graph); robot-robot sightings are ``pose_range_bearing``
 factors between the two robots' nodes at that instant, gated first against the current estimate. Every
 ``optimize_every`` steps the whole graph is re-optimised (sparse Levenberg-Marquardt, warm start) and the marginal
-covariances of the newest poses and of the landmarks are recovered for the next association gates.
+covariances of the newest poses and of the landmarks are recovered for the next association gates. Without ids
+the landmark factors carry a robust kernel scaled to the association gate (a sighting given to the wrong landmark of
+a cluster pulls less: MRCLAM's 15 landmarks stand in clusters 0.18-0.25 m apart), and each robot closes loops on
+its own keyframes (:mod:`slam2d.graph.multi_robot_loops`).
 
 Starting poses: known (``unknown_starts=False``): each robot is anchored by a prior at its start pose. Unknown:
 each robot starts at the origin of its own frame and is a separate group (own map, own gauge: the optimiser holds
@@ -35,6 +38,7 @@ from slam2d.geometry.gaussian import chi2_gate
 from slam2d.graph.graph import FactorGraph, Values
 from slam2d.graph.map_merge import find_merge
 from slam2d.graph.marginals import marginal_covariances
+from slam2d.graph.multi_robot_loops import RobotLoops
 from slam2d.graph.multi_robot_types import (
     MergeEvent,
     MultiEstimate,
@@ -112,6 +116,9 @@ class MultiGraphSLAM(EstimatorLifecycle):
         self.f_between: list[tuple[Any, ...]] = []  # (i keys, j keys, z, information), stacked
         self.f_rb: list[tuple[Any, ...]] = []
         self.f_prr: list[tuple[Any, ...]] = []
+        self.f_loop: list[tuple[Any, ...]] = []  # accepted loop closures (robust between factors)
+        self.loops = RobotLoops(n, cfg.place, cfg.loop_gate_probability, cfg.keyframe_every, rng)
+        self._solved: tuple[FactorGraph, Values, Any] | None = None  # graph, values, analysis of the last solve
         self._fg: FactorGraph | None = None  # the graph so far (factors appended on each optimisation)
         self._in_graph: dict[str, int] = {}
         self.prior_keys = np.zeros(0, dtype=np.int64)
@@ -131,7 +138,8 @@ class MultiGraphSLAM(EstimatorLifecycle):
         self.pending: list[tuple[int, int, int, Array]] = []  # sightings between unmerged groups: (t, o, b, z)
         self.merges: list[MergeEvent] = []
         self.counters = {"optimizations": 0, "sightings_used": 0, "sightings_gated": 0, "landmarks_gated": 0,
-                         "merge_attempts": 0, "merges": 0}
+                         "merge_attempts": 0, "merges": 0, "loops_accepted": 0, "loops_rejected": 0,
+                         "landmarks_fused": 0}
         self.sighting_R = np.diag([cfg.sighting_range_std_m**2, cfg.sighting_bearing_std_rad**2])
         self._lifecycle_reset()
 
@@ -152,10 +160,14 @@ class MultiGraphSLAM(EstimatorLifecycle):
         for r, st in enumerate(ms.steps):
             if len(st.observations):
                 self._observe(r, t, st.observations)
+                if cfg.loop_closure:
+                    self.loops.observe(r, t, r * KEY_STRIDE + t, st.observations.z, cfg.sensor[r].covariance)
         if len(ms.sightings):
             self._sightings(t, ms)
         if t % cfg.optimize_every == 0:
             self._optimize(cfg.iterations)
+            if self.loops.pending and self._close_loops():
+                self._optimize(cfg.iterations * 4)
             if cfg.unknown_starts:
                 self._try_merges(t)
             if cfg.association.method != "known":
@@ -331,12 +343,13 @@ class MultiGraphSLAM(EstimatorLifecycle):
         cached graph (validated once); a landmark re-keying (merge, fusion) rebuilds it."""
         if self._fg is None:
             self._fg = FactorGraph()
-            self._in_graph = {"between": 0, "rb": 0, "prr": 0}
+            self._in_graph = {"between": 0, "rb": 0, "prr": 0, "loop": 0}
             if self.prior_keys.size:
                 std = self.config.start_std_m
                 self._fg.add_prior(self.prior_keys, self.prior_z, np.diag([std**-2, std**-2, std**-2]))
         g = self._fg
-        for name, parts in (("between", self.f_between), ("rb", self.f_rb), ("prr", self.f_prr)):
+        for name, parts in (("between", self.f_between), ("rb", self.f_rb), ("prr", self.f_prr),
+                            ("loop", self.f_loop)):
             if not parts:
                 continue
             i, j, z, info = (np.concatenate([p[c] for p in parts]) for c in range(4))
@@ -348,8 +361,13 @@ class MultiGraphSLAM(EstimatorLifecycle):
             i, j, z, info = i[n0:], j[n0:], z[n0:], info[n0:]
             if name == "between":
                 g.add_between(i, j, z, info)
+            elif name == "loop":
+                kernel = self.config.loop_robust_kernel
+                g.add_between(i, j, z, info, robust=None if kernel == "none" else kernel)
             elif name == "rb":
-                g.add_range_bearing(i, j, z, info)
+                kernel = "none" if self.config.association.method == "known" else self.config.landmark_robust_kernel
+                g.add_range_bearing(i, j, z, info, robust=None if kernel == "none" else kernel,
+                                    robust_param=np.sqrt(chi2_gate(self.config.association.gate_probability, 2)))
             else:
                 g.add_pose_range_bearing(i, j, z, info)
         return g
@@ -366,6 +384,7 @@ class MultiGraphSLAM(EstimatorLifecycle):
         for k, p in zip(out.point_keys.tolist(), out.points, strict=True):
             self.lm_pos[k] = p.copy()
         self.cur = out.poses[self.last_row].copy()
+        self._solved = (graph, out, opt.analysis)
         if not marginals:
             return
         m = marginal_covariances(graph, out, pk[self.last_row], used, analysis=opt.analysis)
@@ -375,6 +394,27 @@ class MultiGraphSLAM(EstimatorLifecycle):
             self.cur_cov[r] = pc
         for k in used.tolist():
             self.lm_cov[k] = m.block("point", k)
+
+    def _close_loops(self) -> bool:
+        """Gate the pending loop candidates against the estimate just solved (one joint marginal over their poses);
+        the accepted ones become robust between factors. True when any was accepted."""
+        assert self._solved is not None
+        graph, values, analysis = self._solved
+        keys = self.loops.keys()
+        m = marginal_covariances(graph, values, keys, analysis=analysis)
+        at = {int(k): 3 * i for i, k in enumerate(keys)}
+
+        def joint_cov(a: int, b: int) -> Array:
+            idx = np.r_[at[a]:at[a] + 3, at[b]:at[b] + 3]
+            return m.joint[np.ix_(idx, idx)]
+
+        found = self.loops.gate(lambda k: self._pv[self._row[k]], joint_cov)
+        self.counters["loops_accepted"] = self.loops.accepted
+        self.counters["loops_rejected"] = self.loops.rejected
+        for c in found:
+            info = np.linalg.inv(c.cov)
+            self.f_loop.append((np.array([c.a]), np.array([c.b]), c.T_a_b[None], 0.5 * (info + info.T)[None]))
+        return bool(found)
 
     # ------------------------------------------------------------------ map merging
     def _try_merges(self, t: int) -> None:
@@ -510,6 +550,9 @@ class MultiGraphSLAM(EstimatorLifecycle):
         """Landmark ``kb`` becomes ``remap[kb]``: its factors are re-keyed and its variable is dropped."""
         if not remap:
             return
+        for kb in remap:  # chains (c -> b, b -> a) end at the landmark that stays
+            while remap[kb] in remap:
+                remap[kb] = remap[remap[kb]]
         self._fg = None  # re-keyed factors: rebuild the graph
         if self.f_rb:
             i, j, z, info = (np.concatenate([p[c] for p in self.f_rb]) for c in range(4))
@@ -550,6 +593,6 @@ class MultiGraphSLAM(EstimatorLifecycle):
                 continue  # seen together from one pose: two landmarks
             remap[kb] = ka
             seen_by[ka] |= seen_by[kb]
-        self.counters["landmarks_fused"] = self.counters.get("landmarks_fused", 0) + len(remap)
+        self.counters["landmarks_fused"] += len(remap)
         self._remap_landmarks(remap)
 

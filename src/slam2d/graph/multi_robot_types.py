@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam2d.association import AssociationConfig
+from slam2d.frontend.place_recognition import PlaceRecognitionConfig
 from slam2d.geometry import se2
 from slam2d.graph.map_merge import MergeHypothesis
 from slam2d.models.motion import MotionNoise
@@ -49,6 +50,20 @@ class MultiGraphConfig:
     """unknown association: a new landmark joins the graph after this many sightings (held aside until then)."""
     candidate_margin_m: float = 1.0
     """landmarks predicted within max_range_m + this of a robot are association candidates."""
+    loop_closure: bool = True
+    """each robot closes loops on its own keyframes by place recognition (:mod:`slam2d.graph.multi_robot_loops`)."""
+    keyframe_every: int = 5
+    """fewest steps between two keyframes of a robot (taken at steps where it measures landmarks)."""
+    place: PlaceRecognitionConfig = field(default_factory=PlaceRecognitionConfig)
+    """place recognition and verification (the single-robot graph's defaults)."""
+    loop_gate_probability: float = 0.999
+    """a verified loop must agree with the estimate at this chi-square probability (3 dof)."""
+    loop_robust_kernel: str = "cauchy"
+    """robust kernel on loop-closure factors: none, huber, cauchy or dcs."""
+    landmark_robust_kernel: str = "cauchy"
+    """unknown association: robust kernel on landmark factors (none, huber, cauchy or dcs), its scale the association
+    gate (sqrt of the chi-square(2) quantile at ``association.gate_probability``, in sigmas): a sighting given to the
+    wrong landmark pulls less. Known ids: never."""
     merge_probability: float = 0.99
     """a merge hypothesis passes the chi-square test at this probability."""
     merge_min_pairs: int = 3
@@ -59,7 +74,7 @@ class MultiGraphConfig:
     """RANSAC hypotheses per merge attempt."""
 
     def __post_init__(self) -> None:
-        for n in ("node_every", "optimize_every", "iterations", "final_iterations", "confirm_after",
+        for n in ("node_every", "optimize_every", "iterations", "final_iterations", "confirm_after", "keyframe_every",
                   "merge_min_pairs", "merge_ransac_iterations"):
             if getattr(self, n) < 1:
                 raise ValueError(f"MultiGraphConfig.{n} must be >= 1 (got {getattr(self, n)})")
@@ -68,6 +83,12 @@ class MultiGraphConfig:
                 raise ValueError(f"MultiGraphConfig.{n} must be > 0 (got {getattr(self, n)})")
         if len(self.motion) != len(self.sensor):
             raise ValueError("MultiGraphConfig: one motion and one sensor model per robot")
+        if not 0 < self.loop_gate_probability < 1:
+            raise ValueError(f"MultiGraphConfig.loop_gate_probability must be in (0, 1) (got "
+                             f"{self.loop_gate_probability})")
+        for n in ("loop_robust_kernel", "landmark_robust_kernel"):
+            if getattr(self, n) not in ("none", "huber", "cauchy", "dcs"):
+                raise ValueError(f"MultiGraphConfig.{n} must be none, huber, cauchy or dcs (got {getattr(self, n)!r})")
         if not 0 < self.merge_probability < 1:
             raise ValueError(f"MultiGraphConfig.merge_probability must be in (0, 1) (got {self.merge_probability})")
 
