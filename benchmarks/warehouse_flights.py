@@ -8,11 +8,12 @@ from the saved map at random unknown poses and must relocalise.
    lidar, and floor markers or not) against the saved map. Reported: success rate (accepted within the budget and
    right), WRONG acceptances (error > 0.5 m or > 5 deg: must be 0), time to decide;
 3. the whole of flights 2 and 3 as lidar sessions from the previous flight's saved map (relocalise, then localise and
-   map): the static layers of consecutive flights compared cell by cell (occupied cells, IoU), and against the
-   truth: the pallet faces that differ between the two flights' worlds are the moved pallets; the IoU outside them,
-   and where the cells that joined or left the static layer lie. ``--estimator lidar-lifelong`` runs the sessions
-   with map layers (flights 2 and 3 localise against the saved static layer and update it; their maps keep the
-   saved one's cell lattice); ``lidar`` re-draws each flight's map from its keyframe scans.
+   map): the static layers of consecutive flights compared cell by cell (occupied cells, IoU; also over only the
+   cells both flights observed), and against the truth: the pallet faces that differ between the two flights'
+   worlds are the moved pallets (carried into the map's frame); the IoU outside them, how many cells differ on
+   and off them, and where the cells that joined or left the static layer lie. ``--estimator lidar-lifelong`` runs
+   the sessions with map layers (flights 2 and 3 localise against the saved static layer and update it; their maps
+   keep the saved one's cell lattice); ``lidar`` re-draws each flight's map from its keyframe scans.
 
 Errors of accepted poses are given against the truth and in the map's frame (:func:`map_frame`: flight 1 draws the
 map with its own drift, about half a degree here, which no relocaliser can see). ``--markers surveyed`` (lifelong
@@ -93,21 +94,49 @@ def dilate(cells: set[tuple[int, int]], r: int = 1) -> set[tuple[int, int]]:
     return {(x + dx, y + dy) for x, y in cells for dx in range(-r, r + 1) for dy in range(-r, r + 1)}
 
 
-def changes(a: MapSnapshot, b: MapSnapshot, walls_a: np.ndarray, walls_b: np.ndarray) -> dict[str, float]:
+def observed_cells(s: MapSnapshot) -> set[tuple[int, int]]:
+    """Cells (as :func:`occupied_cells`) the map has observed: occupied or known free (log-odds != 0)."""
+    iy, ix = np.nonzero(s.occupancy_logodds != 0)
+    res = s.occupancy_resolution_m
+    cx = np.floor((s.occupancy_origin[0] + (ix + 0.5) * res) / res).astype(np.int64)
+    cy = np.floor((s.occupancy_origin[1] + (iy + 0.5) * res) / res).astype(np.int64)
+    return set(zip(cx.tolist(), cy.tolist(), strict=True))
+
+
+def co_observed_iou(a: MapSnapshot, b: MapSnapshot) -> float:
+    """IoU of the occupied cells over the cells both maps observed: a cell only one flight saw (ground the other
+    never reached) is no disagreement."""
+    both = observed_cells(a) & observed_cells(b)
+    ca, cb = occupied_cells(a) & both, occupied_cells(b) & both
+    return len(ca & cb) / max(len(ca | cb), 1)
+
+
+def to_map_frame(walls: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """Segments (W,4) in the simulator's frame carried into the map's by ``frame`` (:func:`map_frame`)."""
+    w = walls.reshape(-1, 4)
+    return np.hstack([se2.transform_points(frame, w[:, :2]), se2.transform_points(frame, w[:, 2:])])
+
+
+def changes(a: MapSnapshot, b: MapSnapshot, walls_a: np.ndarray, walls_b: np.ndarray,
+            frame: np.ndarray) -> dict[str, float]:
     """How the static layer changed between two flights against the truth: the walls that differ between the two
-    flights' worlds are the moved pallets' faces (old and new). Reported: the IoU of the two static layers outside
-    the moved pallets (one cell of margin), and where the cells that joined / left the static layer lie."""
+    flights' worlds are the moved pallets' faces (old and new), carried into the map's frame by ``frame`` (the
+    layers are drawn there: flight 1's turn of half a degree puts a pallet 20 cm off its true place at 25 m).
+    Reported: the IoU of the two static layers outside the moved pallets (one cell of margin), the cells that
+    differ on and off the moved pallets, and where the cells that joined / left the static layer lie."""
     res = a.occupancy_resolution_m
     wa, wb = np.round(walls_a, 6).reshape(-1, 4), np.round(walls_b, 6).reshape(-1, 4)
     ka, kb = set(map(tuple, wa.tolist())), set(map(tuple, wb.tolist()))
     gone = walls_a.reshape(-1, 4)[[tuple(w) not in kb for w in wa.tolist()]]
     came = walls_b.reshape(-1, 4)[[tuple(w) not in ka for w in wb.tolist()]]
+    gone, came = to_map_frame(gone, frame), to_map_frame(came, frame)
     old_cells, new_cells = dilate(segment_cells(gone, res)), dilate(segment_cells(came, res))
     moved = old_cells | new_cells
     ca, cb = occupied_cells(a), occupied_cells(b)
     ra, rb = ca - moved, cb - moved
     added, removed = cb - ca, ca - cb
     return {"moved_pallet_faces": float(len(came)), "iou_outside_moved": len(ra & rb) / max(len(ra | rb), 1),
+            "differ_on_moved": float(len((ca ^ cb) & moved)), "differ_elsewhere": float(len((ca ^ cb) - moved)),
             "added_cells": float(len(added)), "added_on_new_pallets": len(added & new_cells) / max(len(added), 1),
             "removed_cells": float(len(removed)),
             "removed_on_old_pallets": len(removed & old_cells) / max(len(removed), 1),
@@ -229,7 +258,7 @@ def main() -> None:
           f"{c['occupancy_cells']} cells, {int(np.isfinite(maps[0].layers['floor_markers'][:, 0]).sum())} markers")
     rng = np.random.default_rng(args.seed)
     table, record = [], {"world": base, "estimator": args.estimator, "markers": args.markers, "trials": {},
-                         "iou": {}, "changes": {}}
+                         "iou": {}, "iou_co_observed": {}, "changes": {}}
     for flight in (1, 2):
         if not args.skip_trials:
             rows = trials(maps[-1], scenario(base, flight), args.seed, args.starts, args.budget_s, rng, frame)
@@ -246,11 +275,15 @@ def main() -> None:
         if args.maps_dir:
             est.save_map(f"{args.maps_dir}/flight{flight + 1}.db")
         exact, tol = record["iou"][f"{flight}-{flight + 1}"] = iou(maps[-2], maps[-1])
-        ch = record["changes"][f"{flight}-{flight + 1}"] = changes(maps[-2], maps[-1], walls, walls_next)
+        co = record["iou_co_observed"][f"{flight}-{flight + 1}"] = co_observed_iou(maps[-2], maps[-1])
+        ch = record["changes"][f"{flight}-{flight + 1}"] = changes(maps[-2], maps[-1], walls, walls_next, frame)
         walls = walls_next
         print(f"flight {flight + 1} session: {t:.0f} s, relocalised at step {est.accepted_step}, "
               f"{est.map_loops} loops into the saved map; static layer IoU vs flight {flight}: {exact:.3f} "
-              f"(one-cell tolerance: {tol:.3f}; outside the moved pallets: {ch['iou_outside_moved']:.3f}); "
+              f"(one-cell tolerance: {tol:.3f}; on cells both observed: {co:.3f}; outside the moved pallets: "
+              f"{ch['iou_outside_moved']:.3f}); {len(occupied_cells(maps[-2]))} -> {len(occupied_cells(maps[-1]))} "
+              f"static cells, {ch['differ_on_moved']:.0f} differ on the moved pallets, "
+              f"{ch['differ_elsewhere']:.0f} elsewhere; "
               f"{ch['moved_pallet_faces']:.0f} pallet faces moved: {ch['added_cells']:.0f} cells joined the static "
               f"layer ({ch['added_on_new_pallets']:.0%} on a new pallet place), {ch['removed_cells']:.0f} left it "
               f"({ch['removed_on_old_pallets']:.0%} on an old one); {ch['new_pallet_cells_in_static']:.0%} of the "
