@@ -52,13 +52,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, LoopEvent
-from slam2d.frontend.icp import ICPTarget, icp, prepare_target
+from slam2d.frontend.icp import ICPTarget, prepare_target
 from slam2d.geometry import se2
 from slam2d.graph.incremental import IncrementalPoseGraph
 from slam2d.graph.lidar_config import LidarSLAMConfig, LifelongLidarConfig
 from slam2d.graph.lidar_lifelong import LifelongMarkers, MarkerSurvey
 from slam2d.graph.lidar_loops import LoopCheck, confirmed_mask, verify_loop
 from slam2d.graph.lidar_markers import KeyframeMarkers, MarkerPoseGraph
+from slam2d.graph.lidar_tracking import good_fit, track_scan
 from slam2d.log import Scan, Step
 from slam2d.maps.layers import DYNAMIC, LayerStats, MapLayers, PoseBuffer
 from slam2d.maps.occupancy import OccupancyConfig, OccupancyGrid
@@ -117,6 +118,7 @@ class LidarSLAM(EstimatorLifecycle):
         self._full_pending = 0  # whole-graph Gauss-Newton iterations still owed after a loop
         self.loops_dropped = 0  # candidates dropped unverified because the queue was full
         self.tracking_failures = 0
+        self.rematches = 0  # tracking matches replaced by a correlative re-match (graph/lidar_tracking.py)
         self.loops_accepted = 0
         self.loops_rejected = 0
         self.steps = 0
@@ -167,9 +169,11 @@ class LidarSLAM(EstimatorLifecycle):
             self._pose = guess
             self._add_keyframe(step.index, guess, pts, step.scan, None, np.zeros((3, 3)))
             return
-        target = self._local_target()
-        res = icp(pts, target, initial=guess, config=cfg.icp)
-        if res.converged and res.fitness >= cfg.min_fitness and np.all(np.isfinite(res.covariance)):
+        tr = track_scan(pts, self._local_target(), guess, cfg.icp, cfg.min_fitness, cfg.track_rematch_rmse_m,
+                        cfg.track_correlative, cfg.track_rematch_points)
+        self.rematches += tr.replaced
+        res = tr.match
+        if good_fit(res, cfg.min_fitness, np.inf):
             pose, cov = res.transform, res.covariance
         else:
             self.tracking_failures += 1
