@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Generator
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -11,6 +13,7 @@ from slam2d.estimator import EstimatorStateError, SupportsLoopClosure
 from slam2d.frontend.correlative import CorrelativeConfig, correlative_match
 from slam2d.geometry import se2
 from slam2d.graph.lidar import LidarSLAM, LidarSLAMConfig
+from slam2d.graph.lidar_loops import LoopCheck
 from slam2d.lab.registry import make_estimator
 from slam2d.lab.runner import run
 from slam2d.sim import simulate
@@ -116,30 +119,39 @@ def test_no_false_loops_on_warehouse_seed_2() -> None:
 
 
 def test_loop_work_is_bounded_per_scan_and_finalize_verifies_what_is_left() -> None:
-    """Candidates are queued at keyframes and verified at most ``loop_verify_per_scan`` per scan; a full queue
-    drops its oldest (counted); ``finalize`` verifies whatever still waits."""
+    """Candidates are queued at keyframes and verified at most ``loop_verify_per_scan`` stages per scan (a
+    self-similar candidate takes three); a full queue drops its oldest (counted); ``finalize`` verifies whatever
+    still waits."""
     log = simulate("room", seed=3, steps=300)
     cfg = LidarSLAMConfig(loop_every=1, loop_candidates=4, loop_min_separation=10)
     est = LidarSLAM(cfg)
-    calls: list[int] = []
-    verify = est._verify_candidate
+    calls: list[int] = []  # verification stages run per scan
+    finished = [0]
+    stages = est._check_stages
 
-    def counted(*a: object) -> object:
-        calls[-1] += 1
-        return verify(*a)  # type: ignore[arg-type]
+    def counted(*a: Any) -> Generator[None, None, LoopCheck]:
+        inner = stages(*a)
+        while True:
+            calls[-1] += 1
+            try:
+                next(inner)
+            except StopIteration as stop:
+                finished[0] += 1
+                return stop.value  # type: ignore[no-any-return]
+            yield
 
-    est._verify_candidate = counted  # type: ignore[method-assign]
+    est._check_stages = counted  # type: ignore[method-assign]
     est.reset(log.initial_pose, rng=np.random.default_rng(0))
     waiting = 0
     for i in range(1, log.num_steps + 1):
         calls.append(0)
         est.step(log.step(i))
         waiting = max(waiting, len(est._queue))
-    assert max(calls) == 1 and sum(calls) > 20 and waiting > 1  # more candidates than one scan verifies
-    left = len(est._queue)
-    calls.append(0)
+    assert max(calls) == 1 and sum(calls) > finished[0] > 20 and waiting > 1  # more candidates than one scan verifies
+    left = len(est._queue) + (est._active is not None)
+    finished[0] = 0
     est.finalize()
-    assert len(est._queue) == 0 and calls[-1] == left
+    assert len(est._queue) == 0 and est._active is None and finished[0] == left
     small = LidarSLAM(replace(cfg, loop_queue=2))
     run(small, log, rng=np.random.default_rng(0), progress=False)
     assert small.loops_dropped > 0
