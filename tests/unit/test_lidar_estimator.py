@@ -120,8 +120,8 @@ def test_no_false_loops_on_warehouse_seed_2() -> None:
 
 def test_loop_work_is_bounded_per_scan_and_finalize_verifies_what_is_left() -> None:
     """Candidates are queued at keyframes and verified at most ``loop_verify_per_scan`` stages per scan (a
-    self-similar candidate takes three); a full queue drops its oldest (counted); ``finalize`` verifies whatever
-    still waits."""
+    self-similar candidate takes three); with ``loop_queue`` candidates in flight a new one is refused (counted);
+    ``finalize`` verifies whatever still waits."""
     log = simulate("room", seed=3, steps=300)
     cfg = LidarSLAMConfig(loop_every=1, loop_candidates=4, loop_min_separation=10)
     est = LidarSLAM(cfg)

@@ -115,7 +115,8 @@ class LidarSLAM(EstimatorLifecycle):
         self._active: tuple[int, int, Array, int, Generator[None, None, LoopCheck]] | None = None  # in verification
         self._decided: deque[tuple[int, list[LoopEvent], list[tuple[int, int, Array, Array]]]] = deque()
         self._full_pending = 0  # whole-graph Gauss-Newton iterations still owed after a loop
-        self.loops_dropped = 0  # candidates dropped unverified because the queue was full
+        self.loops_dropped = 0  # candidates refused because loop_queue were in flight
+        self._live: deque[int] = deque()  # when the candidates in flight are due
         self.tracking_failures = 0
         self.rematches = 0  # tracking matches replaced by a correlative re-match (graph/lidar_tracking.py)
         self.loops_accepted = 0
@@ -297,11 +298,14 @@ class LidarSLAM(EstimatorLifecycle):
         if cfg.loop_closure and k % cfg.loop_every == 0:
             cands = self._loop_candidates(k, pose)
             snap = self.graph.poses.copy() if cands else None  # what a verification right now would see
-            for c in cands:
-                if len(self._queue) >= cfg.loop_queue:
-                    self._queue.popleft()  # the oldest waiting candidate
+            while self._live and self._live[0] <= self.steps:
+                self._live.popleft()
+            for c in cands:  # at most loop_queue in flight (queued, not yet due), however fast they are verified
+                if len(self._live) >= cfg.loop_queue:
                     self.loops_dropped += 1
+                    continue
                 assert snap is not None
+                self._live.append(self.steps + cfg.loop_queue)
                 self._queue.append((c, k, snap, self.steps + cfg.loop_queue))
 
     # ------------------------------------------------------------------ loop work, bounded per scan
@@ -312,7 +316,7 @@ class LidarSLAM(EstimatorLifecycle):
         Schedule independence: a candidate is verified against the keyframe poses of the moment it was queued,
         and its decision enters the graph exactly ``loop_queue`` scans after that moment (a candidate still
         unverified then is finished at once), so the loops and the trajectory do not depend on how the stages
-        were spread over scans (unless the queue overflows and drops candidates, which is counted)."""
+        were spread over scans (a candidate is refused when ``loop_queue`` are in flight; counted)."""
         assert self.graph is not None
         moved = False
         if self._full_pending:
@@ -418,16 +422,11 @@ class LidarSLAM(EstimatorLifecycle):
                 break
         return cand
 
-    def _search_loops(self, k: int) -> list[tuple[int, Array, Array, bool]]:
-        """Verify every candidate of keyframe ``k`` now: (old keyframe, T_old_new, information, ok)."""
+    def _search_loops(self, k: int) -> list[tuple[int, LoopCheck]]:
+        """Verify every candidate of keyframe ``k`` now: (old keyframe, its check)."""
         assert self.graph is not None
         snap = self.graph.poses.copy()
-        return [(c, *self._verify_candidate(c, k, snap)) for c in self._loop_candidates(k, snap[k])]
-
-    def _verify_candidate(self, c: int, k: int, poses: Array) -> tuple[Array, Array, bool]:
-        """Verify old keyframe ``c`` as a loop of new keyframe ``k``: (T_c_k, information, ok)."""
-        chk = self._check_candidate(c, k, poses)
-        return chk.transform, chk.information, chk.ok
+        return [(c, self._check_candidate(c, k, snap)) for c in self._loop_candidates(k, snap[k])]
 
     def _check_candidate(self, c: int, k: int, poses: Array) -> LoopCheck:
         """Every gate of a loop candidate, with the values it saw, all stages at once (see ``_check_stages``)."""
@@ -469,12 +468,12 @@ class LidarSLAM(EstimatorLifecycle):
         if self.graph is None or len(self._kf_step) < 2:
             return False
         k = len(self._kf_step) - 1
-        found = [r for r in self._search_loops(k) if r[3]]
-        events = [LoopEvent(self._kf_step[c], self._kf_step[k], True, t) for c, t, _, _ in found]
+        found = [(c, chk) for c, chk in self._search_loops(k) if chk.ok]
+        events = [LoopEvent(self._kf_step[c], self._kf_step[k], True, chk.transform) for c, chk in found]
         if found:
             # the incremental graph takes edges only with a new pose: re-anchor through a whole-graph solve
-            for c, t, info, _ in found:
-                self.graph.add_loop(c, k, t, info)
+            for c, chk in found:
+                self.graph.add_loop(c, k, chk.transform, chk.information)
             self._version += 1
             self._pose = self.graph.poses[-1].copy()
             self.loops_accepted += len(found)

@@ -128,9 +128,10 @@ class LidarSLAMConfig:
     """loop candidates verified per scan: candidates are queued when a keyframe is made and verified over the
     following scans, which bounds the work of every scan."""
     loop_queue: int = 16
-    """at most this many candidates wait; when full, the oldest is dropped unverified (counted). Also the delay,
-    in scans, from queueing a candidate to its decision entering the graph: fixed, so that results do not depend
-    on when within that delay the candidate was verified."""
+    """the delay, in scans, from queueing a candidate to its decision entering the graph: fixed, so that results
+    do not depend on when within that delay the candidate was verified. Also at most this many candidates are in
+    flight (queued in the last ``loop_queue`` scans); more are refused unverified (counted), a rule that does not
+    depend on how fast they are verified either."""
     graph: IncrementalConfig = field(default_factory=lambda: IncrementalConfig(
         window=30, loop_neighbourhood=3, iterations=3, full_every=200, loop_kernel="cauchy"))
     """incremental pose-graph settings (in keyframes). Loop edges carry a Cauchy kernel (3 sigma): with plain least
