@@ -125,8 +125,9 @@ class LidarSLAMConfig:
     """Gauss-Newton iterations on the whole keyframe graph after a loop entered, one per scan over the next scans
     (0: the incremental graph's local solve only)."""
     loop_verify_per_scan: int = 1
-    """loop candidates verified per scan: candidates are queued when a keyframe is made and verified over the
-    following scans, which bounds the work of every scan."""
+    """verification stages run per scan: candidates are queued when a keyframe is made and verified over the
+    following scans, one stage at a time (the correlative + ICP check; a self-similar place's static re-check is
+    two more: its masks, its match), which bounds the work of every scan."""
     loop_queue: int = 16
     """the delay, in scans, from queueing a candidate to its decision entering the graph: fixed, so that results
     do not depend on when within that delay the candidate was verified. Also at most this many candidates are in
