@@ -14,6 +14,7 @@ support). A false loop whose along-heading error is large and across-heading err
 from __future__ import annotations
 
 import argparse
+from collections.abc import Generator
 from typing import Any
 
 import numpy as np
@@ -34,8 +35,8 @@ class _Audited(LidarSLAM):
         super().reset(initial_pose, rng=rng)
         self.verified: list[tuple[int, int, LoopCheck, Any]] = []
 
-    def _check_candidate(self, c: int, k: int, poses: Any) -> LoopCheck:
-        chk = super()._check_candidate(c, k, poses)
+    def _check_stages(self, c: int, k: int, poses: Any) -> Generator[None, None, LoopCheck]:
+        chk = yield from super()._check_stages(c, k, poses)
         if chk.ok:
             self.verified.append((self._kf_step[c], self._kf_step[k], chk, se2.between(poses[c], poses[k])))
         return chk

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Generator
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -11,6 +13,7 @@ from slam2d.estimator import EstimatorStateError, SupportsLoopClosure
 from slam2d.frontend.correlative import CorrelativeConfig, correlative_match
 from slam2d.geometry import se2
 from slam2d.graph.lidar import LidarSLAM, LidarSLAMConfig
+from slam2d.graph.lidar_loops import LoopCheck
 from slam2d.lab.registry import make_estimator
 from slam2d.lab.runner import run
 from slam2d.sim import simulate
@@ -116,30 +119,39 @@ def test_no_false_loops_on_warehouse_seed_2() -> None:
 
 
 def test_loop_work_is_bounded_per_scan_and_finalize_verifies_what_is_left() -> None:
-    """Candidates are queued at keyframes and verified at most ``loop_verify_per_scan`` per scan; a full queue
-    drops its oldest (counted); ``finalize`` verifies whatever still waits."""
+    """Candidates are queued at keyframes and verified at most ``loop_verify_per_scan`` stages per scan (a
+    self-similar candidate takes three); with ``loop_queue`` candidates in flight a new one is refused (counted);
+    ``finalize`` verifies whatever still waits."""
     log = simulate("room", seed=3, steps=300)
     cfg = LidarSLAMConfig(loop_every=1, loop_candidates=4, loop_min_separation=10)
     est = LidarSLAM(cfg)
-    calls: list[int] = []
-    verify = est._verify_candidate
+    calls: list[int] = []  # verification stages run per scan
+    finished = [0]
+    stages = est._check_stages
 
-    def counted(*a: object) -> object:
-        calls[-1] += 1
-        return verify(*a)  # type: ignore[arg-type]
+    def counted(*a: Any) -> Generator[None, None, LoopCheck]:
+        inner = stages(*a)
+        while True:
+            calls[-1] += 1
+            try:
+                next(inner)
+            except StopIteration as stop:
+                finished[0] += 1
+                return stop.value  # type: ignore[no-any-return]
+            yield
 
-    est._verify_candidate = counted  # type: ignore[method-assign]
+    est._check_stages = counted  # type: ignore[method-assign]
     est.reset(log.initial_pose, rng=np.random.default_rng(0))
     waiting = 0
     for i in range(1, log.num_steps + 1):
         calls.append(0)
         est.step(log.step(i))
         waiting = max(waiting, len(est._queue))
-    assert max(calls) == 1 and sum(calls) > 20 and waiting > 1  # more candidates than one scan verifies
-    left = len(est._queue)
-    calls.append(0)
+    assert max(calls) == 1 and sum(calls) > finished[0] > 20 and waiting > 1  # more candidates than one scan verifies
+    left = len(est._queue) + (est._active is not None)
+    finished[0] = 0
     est.finalize()
-    assert len(est._queue) == 0 and calls[-1] == left
+    assert len(est._queue) == 0 and est._active is None and finished[0] == left
     small = LidarSLAM(replace(cfg, loop_queue=2))
     run(small, log, rng=np.random.default_rng(0), progress=False)
     assert small.loops_dropped > 0
@@ -188,3 +200,33 @@ def test_loops_do_not_depend_on_when_candidates_are_verified() -> None:
     key = [[(lp.a, lp.b, lp.accepted, tuple(lp.T_a_b)) for lp in r.loops] for r in (at_once, spread)]
     assert key[0] == key[1]
     assert np.array_equal(at_once.trajectory, spread.trajectory)
+
+
+def test_correlative_grid_cropped_to_the_scans_reach_gives_the_whole_grids_results(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The likelihood grid covers only the cells a moved scan point can reach (plus a zero border): on a long
+    corridor map with clutter the crop is less than half the grid, and every match is bit-identical to the whole
+    grid's (same lattice, and outside the border the likelihood is exactly zero in float32)."""
+    import slam2d.frontend.correlative as corr
+
+    rng = np.random.default_rng(0)
+    x = np.arange(-40, 40, 0.05)
+    walls = np.vstack([np.stack([x, np.full_like(x, s)], -1) for s in (-1.5, 1.5)])
+    clutter = np.column_stack([rng.uniform(-40, 40, 300), rng.uniform(-4, 4, 300)])
+    tgt = np.vstack([walls, clutter]) + rng.normal(0, 0.01, (len(walls) + 300, 2))
+    cfg = CorrelativeConfig()
+    reachable = corr._reachable
+    for _ in range(10):
+        pose = np.array([rng.uniform(-20, 20), rng.uniform(-0.5, 0.5), rng.uniform(-0.2, 0.2)])
+        src = se2.inverse_transform_points(pose, tgt[np.abs(tgt[:, 0] - pose[0]) < 8])
+        guess = pose + np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2)])
+        lo = tgt.min(axis=0) - 0.5
+        whole = (int((tgt[:, 1].max() - lo[1]) / 0.05) + 11, int((tgt[:, 0].max() - lo[0]) / 0.05) + 11)
+        cells, _ = reachable(src, guess, lo, whole, cfg)
+        assert cells[0] * cells[1] < 0.5 * whole[0] * whole[1]
+        monkeypatch.setattr(corr, "_reachable", reachable)
+        cropped = correlative_match(src, tgt, guess, cfg)
+        monkeypatch.setattr(corr, "_reachable", lambda s, g, lo, shape, c: (shape, (0, 0)))
+        full = correlative_match(src, tgt, guess, cfg)
+        assert np.array_equal(cropped.transform, full.transform)
+        assert cropped.score == full.score and cropped.ambiguity == full.ambiguity

@@ -86,7 +86,7 @@ def test_lidar_alias_bad_dataset_name_and_bad_override(tmp_path: Path, capsys: p
 #: ACES, first 3000 scans, default config (measured on this branch; deterministic: the same on every run). The
 #: logged odometry scores 0.0315 m on these 483 (short) relations: ACES odometry is good locally, it fails on loops.
 ACES_HEAD = 3000
-PIN = {"relations": 483, "trans_mean_m": 0.0328, "rot_mean_deg": 0.346}
+PIN = {"relations": 483, "trans_mean_m": 0.0329, "rot_mean_deg": 0.339}
 
 
 @pytest.mark.slow

@@ -52,6 +52,10 @@ class CorrelativeConfig:
     """a competing alignment must differ from the best by more than this in translation ..."""
     ambiguity_angle_rad: float = 0.15
     """... or by more than this in rotation (rad)."""
+    ambiguity_peaks: bool = False
+    """count only competing alignments that are peaks of their own (a coarse score no lower than its neighbours'
+    in angle, x and y): in a corridor whose end or doors pin the match, the scores fall off along the axis from
+    the winner without another peak, and the coarse ratio is still near 1 at 0.4 m (False: every far alignment)."""
 
     def __post_init__(self) -> None:
         check_positive(self, "resolution_m", "sigma_m", "window_xy_m", "window_theta_rad", "coarse_theta_step_rad",
@@ -82,12 +86,15 @@ class _Grids:
     lo: Array
     shape: tuple[int, int]
     pad: int
+    first: tuple[int, int] = (0, 0)
+    """(x, y) index, on the lattice of ``lo``, of the grid's first cell (a crop of a larger grid)."""
 
 
-def _likelihood(points: Array, lo: Array, shape: tuple[int, int], cfg: CorrelativeConfig, pad: int) -> _Grids:
+def _likelihood(points: Array, lo: Array, shape: tuple[int, int], cfg: CorrelativeConfig, pad: int,
+                first: tuple[int, int] = (0, 0)) -> _Grids:
     res = cfg.resolution_m
     occ = np.ones(shape, dtype=bool)
-    ij = np.floor((points - lo) / res).astype(np.int64)
+    ij = np.floor((points - lo) / res).astype(np.int64) - np.asarray(first, dtype=np.int64)
     inside = (ij[:, 0] >= 0) & (ij[:, 0] < shape[1]) & (ij[:, 1] >= 0) & (ij[:, 1] < shape[0])
     occ[ij[inside, 1], ij[inside, 0]] = False
     d = np.asarray(ndimage.distance_transform_edt(occ), dtype=np.float64) * res
@@ -96,7 +103,7 @@ def _likelihood(points: Array, lo: Array, shape: tuple[int, int], cfg: Correlati
     # max over the block [i, i+c) x [j, j+c): a maximum filter shifted so that the block starts at the cell
     coarse = ndimage.maximum_filter(fine, size=c, origin=-(c // 2), mode="constant", cval=0.0)
     return _Grids(np.pad(fine.astype(np.float32), pad).ravel(), np.pad(coarse.astype(np.float32), pad).ravel(),
-                  lo, shape, pad)
+                  lo, shape, pad, first)
 
 
 def _scores(grid: NDArray[np.float32], g: _Grids, pts: Array, thetas: Array, origin: Array, off_x: NDArray[np.int64],
@@ -112,8 +119,8 @@ def _scores(grid: NDArray[np.float32], g: _Grids, pts: Array, thetas: Array, ori
     c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
     x = c * pts[None, :, 0] - s * pts[None, :, 1] + (origin[0] - g.lo[0])  # (A,N)
     y = s * pts[None, :, 0] + c * pts[None, :, 1] + (origin[1] - g.lo[1])
-    bx = np.floor(x / res).astype(np.int64)
-    by = np.floor(y / res).astype(np.int64)
+    bx = np.floor(x / res).astype(np.int64) - g.first[0]
+    by = np.floor(y / res).astype(np.int64) - g.first[1]
     reach = max(int(np.abs(off_x).max()), int(np.abs(off_y).max()))
     # a point whose every offset lands outside the grid reads the zero corner of the border
     far = (bx < -reach) | (bx >= nx + reach) | (by < -reach) | (by >= ny + reach)
@@ -124,6 +131,31 @@ def _scores(grid: NDArray[np.float32], g: _Grids, pts: Array, thetas: Array, ori
     vals = np.take(grid, base[:, None, :] + off[None, :, None])  # (A, Y*X, N)
     out = vals.sum(axis=-1, dtype=np.float64) / len(pts)
     return np.asarray(out.reshape(len(thetas), len(off_y), len(off_x)), dtype=np.float64)
+
+
+#: beyond this many sigma from every target point the likelihood is exactly 0 in float32 (exp(-112) < 1e-45)
+_ZERO_SIGMAS = 15.0
+
+
+def _reachable(src: Array, g: Array, lo: Array, shape: tuple[int, int],
+               cfg: CorrelativeConfig) -> tuple[tuple[int, int], tuple[int, int]]:
+    """The cells (shape, first cell) of the target's grid that matter: those within reach of a source point moved
+    by any pose of the window, plus a border where the likelihood is already zero. The grid's cost (distance
+    transform, maximum filter) follows its area, and a local map of long corridors spans far more than one scan
+    can reach; values in the reachable cells are the same as on the whole grid (same lattice, same nearby points)."""
+    res = cfg.resolution_m
+    moved = np.column_stack([np.cos(g[2]) * src[:, 0] - np.sin(g[2]) * src[:, 1],
+                             np.sin(g[2]) * src[:, 0] + np.cos(g[2]) * src[:, 1]]) + g[:2]
+    step = cfg.coarse_cells * res  # the search's farthest offset and angle (a coarse step past the window)
+    shift = (np.ceil(cfg.window_xy_m / step) + 1) * step + 2 * res
+    turn = (np.ceil(cfg.window_theta_rad / cfg.coarse_theta_step_rad) + 1) * cfg.coarse_theta_step_rad
+    sweep = float(np.max(np.hypot(src[:, 0], src[:, 1]))) * turn  # arc of the farthest point
+    grow = shift + sweep + _ZERO_SIGMAS * cfg.sigma_m
+    i0 = np.maximum(np.floor((moved.min(axis=0) - grow - lo) / res).astype(np.int64), 0)
+    i1 = np.minimum(np.ceil((moved.max(axis=0) + grow - lo) / res).astype(np.int64), [shape[1] - 1, shape[0] - 1])
+    if np.any(i1 < i0):  # the scan cannot reach the target at all: keep a small grid
+        i0 = i1 = np.zeros(2, dtype=np.int64)
+    return (int(i1[1] - i0[1]) + 1, int(i1[0] - i0[0]) + 1), (int(i0[0]), int(i0[1]))
 
 
 def correlative_match(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
@@ -145,7 +177,8 @@ def correlative_match(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
     th = g[2] + np.arange(-na, na + 1) * cfg.coarse_theta_step_rad
     step = c * res
     nk = int(np.ceil(cfg.window_xy_m / step))
-    grids = _likelihood(tgt, lo, shape, cfg, pad=2 * (nk * c + c) + 1)
+    cells, first = _reachable(src, g, lo, shape, cfg)
+    grids = _likelihood(tgt, lo, cells, cfg, 2 * (nk * c + c) + 1, first)
     koff = np.arange(-nk, nk + 1) * c  # coarse offsets from the guess, in fine cells
     kx = g[0] + koff * res
     ky = g[1] + koff * res
@@ -171,6 +204,8 @@ def correlative_match(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
     ty, tx = np.meshgrid(ky, kx, indexing="ij")
     far = ((np.hypot(tx - best_t[0], ty - best_t[1])[None] > cfg.ambiguity_radius_m)
            | (np.abs(th - best_t[2])[:, None, None] > cfg.ambiguity_angle_rad))
+    if cfg.ambiguity_peaks:
+        far &= sc >= ndimage.maximum_filter(sc, size=3, mode="nearest")
     top = float(sc.max())
     amb = float(sc[far].max()) / top if far.any() and top > 0 else 0.0
     best_t[2] = float(np.arctan2(np.sin(best_t[2]), np.cos(best_t[2])))

@@ -3,27 +3,24 @@ and an incremental pose graph; its map is an occupancy grid.
 
 Per step (one scan):
 
-1. tracking: the scan is matched by point-to-line ICP against the local map (the points of the newest
-   ``local_map_keyframes`` keyframes at their current estimates; KD-tree and normals built once per keyframe), from
-   the previous pose composed with the step's odometry; a failed match keeps the odometry guess (counted);
+1. tracking (:mod:`slam2d.graph.lidar_tracking`): point-to-line ICP against the local map (the newest
+   ``local_map_keyframes`` keyframes at their current estimates) from the previous pose composed with the step's
+   odometry; a poor fit is redone from a correlative search; a failed match keeps the odometry guess (counted);
 2. keyframes: when the tracked pose moved ``keyframe_distance_m`` or turned ``keyframe_angle_rad`` since the last
    keyframe, the scan becomes a keyframe: a node of the pose graph with a relative-pose edge from the previous
    keyframe (the tracking covariance rotated into that keyframe's frame, floored);
 3. loop closures (every ``loop_every`` keyframes): old keyframes within ``loop_radius_m`` of the new one (and at
-   least ``loop_min_separation`` keyframes older) are queued as candidates; each scan verifies at most
-   ``loop_verify_per_scan`` of them against a local map around the old keyframe: correlative matching over a window
-   (:mod:`slam2d.frontend.correlative`; the score must be high and no competing alignment nearly as good, which
-   rejects parallel identical aisles and corridor axes), then ICP refinement (fitness and residual gates) and a
-   chi-square gate on the ICP covariance between the correlative and ICP results; a loop in a self-similar place
-   (ambiguity above ``loop_static_ambiguity``) is verified again on static structure only, the points no other
-   keyframe contradicts (:mod:`slam2d.graph.lidar_loops`: along an aisle a moving forklift can be all that breaks
-   the tie); a verified loop is accepted once a second one agrees with it. A candidate is verified against the
-   keyframe poses of the moment it was queued, and its decision enters the graph a fixed ``loop_queue`` scans
-   later, so the results do not depend on how the verifications were spread over scans;
+   least ``loop_min_separation`` keyframes older) are queued as candidates; each scan runs at most
+   ``loop_verify_per_scan`` verification stages, against a local map around the old keyframe: correlative matching
+   over a window (:mod:`slam2d.frontend.correlative`; a high score and no competing alignment nearly as good:
+   parallel identical aisles, corridor axes), ICP refinement (fitness, residual and chi-square gates); a loop in a
+   self-similar place (ambiguity above ``loop_static_ambiguity``) is verified again on static structure only, the
+   points no other keyframe contradicts (:mod:`slam2d.graph.lidar_loops`: along an aisle a moving forklift can be
+   all that breaks the tie; two more stages); a verified loop is accepted once a second one agrees with it; its
+   decision enters the graph a fixed ``loop_queue`` scans after queueing (results independent of the schedule);
 4. the keyframe and its edges enter :class:`~slam2d.graph.incremental.IncrementalPoseGraph`: a local solve when a
-   loop enters, then ``loop_full_iterations`` whole-graph Gauss-Newton iterations, one per scan, a whole-graph
-   iteration every ``graph.full_every`` keyframes, the whole graph to convergence in ``finalize`` (bounded work per
-   scan: no full re-analysis when one node is added, no scan pays for a whole loop search).
+   loop enters, then ``loop_full_iterations`` whole-graph Gauss-Newton iterations, one per scan, one every
+   ``graph.full_every`` keyframes, the whole graph to convergence in ``finalize`` (bounded work per scan).
 
 Floor markers (when steps carry readings): marker nodes in the graph, each reading a factor from its keyframe, a
 marker read again long after a loop-like solve (:mod:`slam2d.graph.lidar_markers`).
@@ -47,18 +44,20 @@ sighting (``map_unsurveyed_markers``), which pins later passes to that first pas
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Generator
 
 import numpy as np
 from numpy.typing import NDArray
 
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, LoopEvent
-from slam2d.frontend.icp import ICPTarget, icp, prepare_target
+from slam2d.frontend.icp import ICPTarget, prepare_target
 from slam2d.geometry import se2
 from slam2d.graph.incremental import IncrementalPoseGraph
 from slam2d.graph.lidar_config import LidarSLAMConfig, LifelongLidarConfig
 from slam2d.graph.lidar_lifelong import LifelongMarkers, MarkerSurvey
-from slam2d.graph.lidar_loops import LoopCheck, confirmed_mask, verify_loop
+from slam2d.graph.lidar_loops import LoopCheck, confirmed_mask, loops_agree, verify_loop
 from slam2d.graph.lidar_markers import KeyframeMarkers, MarkerPoseGraph
+from slam2d.graph.lidar_tracking import good_fit, track_scan
 from slam2d.log import Scan, Step
 from slam2d.maps.layers import DYNAMIC, LayerStats, MapLayers, PoseBuffer
 from slam2d.maps.occupancy import OccupancyConfig, OccupancyGrid
@@ -113,10 +112,13 @@ class LidarSLAM(EstimatorLifecycle):
         # loop candidates awaiting verification: (old kf, new kf, the keyframe poses when they were queued, the
         # scan their decision enters the graph), and decisions awaiting that scan: (scan, events, loops to enter)
         self._queue: deque[tuple[int, int, Array, int]] = deque()
+        self._active: tuple[int, int, Array, int, Generator[None, None, LoopCheck]] | None = None  # in verification
         self._decided: deque[tuple[int, list[LoopEvent], list[tuple[int, int, Array, Array]]]] = deque()
         self._full_pending = 0  # whole-graph Gauss-Newton iterations still owed after a loop
-        self.loops_dropped = 0  # candidates dropped unverified because the queue was full
+        self.loops_dropped = 0  # candidates refused because loop_queue were in flight
+        self._live: deque[int] = deque()  # when the candidates in flight are due
         self.tracking_failures = 0
+        self.rematches = 0  # tracking matches replaced by a correlative re-match (graph/lidar_tracking.py)
         self.loops_accepted = 0
         self.loops_rejected = 0
         self.steps = 0
@@ -167,9 +169,11 @@ class LidarSLAM(EstimatorLifecycle):
             self._pose = guess
             self._add_keyframe(step.index, guess, pts, step.scan, None, np.zeros((3, 3)))
             return
-        target = self._local_target()
-        res = icp(pts, target, initial=guess, config=cfg.icp)
-        if res.converged and res.fitness >= cfg.min_fitness and np.all(np.isfinite(res.covariance)):
+        tr = track_scan(pts, self._local_target(), guess, cfg.icp, cfg.min_fitness, cfg.track_rematch_rmse_m,
+                        cfg.track_correlative, cfg.track_rematch_points)
+        self.rematches += tr.replaced
+        res = tr.match
+        if good_fit(res, cfg.min_fitness, np.inf):
             pose, cov = res.transform, res.covariance
         else:
             self.tracking_failures += 1
@@ -294,27 +298,25 @@ class LidarSLAM(EstimatorLifecycle):
         if cfg.loop_closure and k % cfg.loop_every == 0:
             cands = self._loop_candidates(k, pose)
             snap = self.graph.poses.copy() if cands else None  # what a verification right now would see
-            for c in cands:
-                if len(self._queue) >= cfg.loop_queue:
-                    self._queue.popleft()  # the oldest waiting candidate
+            while self._live and self._live[0] <= self.steps:
+                self._live.popleft()
+            for c in cands:  # at most loop_queue in flight (queued, not yet due), however fast they are verified
+                if len(self._live) >= cfg.loop_queue:
                     self.loops_dropped += 1
+                    continue
                 assert snap is not None
+                self._live.append(self.steps + cfg.loop_queue)
                 self._queue.append((c, k, snap, self.steps + cfg.loop_queue))
 
     # ------------------------------------------------------------------ loop work, bounded per scan
     def _loop_work(self, verifications: int, *, flush: bool = False) -> None:
-        """One scan's share of the loop work: one whole-graph Gauss-Newton iteration if a loop still owes some, at
-        most ``verifications`` queued candidates verified and decided, and the decisions that are due entered
-        (each accepted loop is a local solve; ``flush``: every decision now). Loop candidates are found when a
-        keyframe is made but verified over the next scans, so no scan pays for a whole search (a 30 Hz lidar
-        leaves 33 ms per scan).
-
+        """One scan's share of the loop work: a whole-graph Gauss-Newton iteration if a loop still owes some, at
+        most ``verifications`` verification stages of queued candidates, and the decisions that are due entered
+        (``flush``: everything now). No scan pays for a whole search (a 30 Hz lidar leaves 33 ms per scan).
         Schedule independence: a candidate is verified against the keyframe poses of the moment it was queued,
-        and its decision enters the graph exactly ``loop_queue`` scans after that moment, however many scans its
-        verification waited (with one verification per scan a candidate always reaches the front of the queue
-        before then). So the graph every later candidate is found and verified in is the same whether candidates
-        are verified at once or spread over scans: the accepted loops and their measurements do not depend on
-        the schedule (unless the queue overflows and drops candidates, which is counted)."""
+        and its decision enters the graph exactly ``loop_queue`` scans after that moment (a candidate still
+        unverified then is finished at once), so the loops and the trajectory do not depend on how the stages
+        were spread over scans (a candidate is refused when ``loop_queue`` are in flight; counted)."""
         assert self.graph is not None
         moved = False
         if self._full_pending:
@@ -322,12 +324,19 @@ class LidarSLAM(EstimatorLifecycle):
             # converged (the step changed the cost too little): the rest of the owed iterations are not needed
             self._full_pending = 0 if summary.termination != "max iterations" else self._full_pending - 1
             moved = True
-        done = 0
-        while self._queue and (done < verifications or flush or self._queue[0][3] <= self.steps):
-            c, k, snap, due = self._queue.popleft()
-            t_ck, info, ok = self._verify_candidate(c, k, snap)
-            self._decided.append((due, *self._decide(c, k, t_ck, info, ok, snap)))
+        done = 0  # verification stages run in this scan (a self-similar candidate takes three: graph/lidar_loops.py)
+        while (self._active or self._queue) and (
+                done < verifications or flush or (self._active or self._queue[0])[3] <= self.steps):
+            if self._active is None:
+                c, k, snap, due = self._queue.popleft()
+                self._active = (c, k, snap, due, self._check_stages(c, k, snap))
             done += 1
+            try:
+                next(self._active[4])
+            except StopIteration as stop:
+                c, k, snap, due, _ = self._active
+                self._active, chk = None, stop.value
+                self._decided.append((due, *self._decide(c, k, chk.transform, chk.information, chk.ok, snap)))
         events: list[LoopEvent] = []
         while self._decided and (flush or self._decided[0][0] <= self.steps):
             _, evs, loops = self._decided.popleft()
@@ -350,7 +359,7 @@ class LidarSLAM(EstimatorLifecycle):
         Returns the decisions and the loops (old kf, new kf, T, information) to enter the graph."""
         cfg = self.config
         self._pool = [q for q in self._pool if k - q[1] <= cfg.loop_pair_keyframes]
-        partners = [q for q in self._pool if self._consistent(q, (c, k, t_ck), snap)] if ok else []
+        partners = [q for q in self._pool if loops_agree(q[:3], (c, k, t_ck), snap, cfg)] if ok else []
         accept = ok and (cfg.loop_confirmations == 0 or bool(partners))
         events = [LoopEvent(self._kf_step[c], self._kf_step[k], accept, t_ck)]
         loops = [(c, k, t_ck, info)] if accept else []
@@ -363,21 +372,6 @@ class LidarSLAM(EstimatorLifecycle):
         if ok:
             self._pool.append((c, k, t_ck, info, accept))
         return events, loops
-
-    def _consistent(self, old: tuple[int, int, Array, Array, bool], new: tuple[int, int, Array], p: Array) -> bool:
-        """Do two verified loops (c1, k1, T_c1_k1) and (c2, k, T_c2_k) agree? Going from c1 to the new keyframe
-        through the first loop and the tracked chain must land where the old chain c1 -> c2 and the second loop
-        put it (a wrong loop among identical places agrees with a right one only by accident). ``p``: the keyframe
-        poses when the second loop was queued (k1 <= k2, so they hold every keyframe involved)."""
-        cfg = self.config
-        c1, k1, t1 = old[0], old[1], old[2]
-        c2, k2, t2 = new
-        if c1 == c2 and k1 == k2:
-            return False
-        lhs = t1 if k1 == k2 else se2.compose(t1, se2.between(p[k1], p[k2]))
-        rhs = se2.compose(se2.between(p[c1], p[c2]), t2)
-        e = se2.local(lhs, rhs)
-        return bool(np.hypot(e[0], e[1]) <= cfg.loop_pair_xy_m and abs(e[2]) <= cfg.loop_pair_theta_rad)
 
     # ------------------------------------------------------------------ maps
     def _points_in(self, poses: Array, lo: int, hi: int, frame: Array | None = None) -> Array:
@@ -428,36 +422,43 @@ class LidarSLAM(EstimatorLifecycle):
                 break
         return cand
 
-    def _search_loops(self, k: int) -> list[tuple[int, Array, Array, bool]]:
-        """Verify every candidate of keyframe ``k`` now: (old keyframe, T_old_new, information, ok)."""
+    def _search_loops(self, k: int) -> list[tuple[int, LoopCheck]]:
+        """Verify every candidate of keyframe ``k`` now: (old keyframe, its check)."""
         assert self.graph is not None
         snap = self.graph.poses.copy()
-        return [(c, *self._verify_candidate(c, k, snap)) for c in self._loop_candidates(k, snap[k])]
-
-    def _verify_candidate(self, c: int, k: int, poses: Array) -> tuple[Array, Array, bool]:
-        """Verify old keyframe ``c`` as a loop of new keyframe ``k``: (T_c_k, information, ok)."""
-        chk = self._check_candidate(c, k, poses)
-        return chk.transform, chk.information, chk.ok
+        return [(c, self._check_candidate(c, k, snap)) for c in self._loop_candidates(k, snap[k])]
 
     def _check_candidate(self, c: int, k: int, poses: Array) -> LoopCheck:
-        """Every gate of a loop candidate, with the values it saw (:mod:`slam2d.graph.lidar_loops`). ``poses``
-        are the keyframe poses when the candidate was queued: the guess, the old local map and the new keyframe's
+        """Every gate of a loop candidate, with the values it saw, all stages at once (see ``_check_stages``)."""
+        stages = self._check_stages(c, k, poses)
+        while True:
+            try:
+                next(stages)
+            except StopIteration as stop:
+                return stop.value  # type: ignore[no-any-return]
+
+    def _check_stages(self, c: int, k: int, poses: Array) -> Generator[None, None, LoopCheck]:
+        """Every gate of a loop candidate (:mod:`slam2d.graph.lidar_loops`), as stages that pause in between (one
+        per scan: the static re-check of a self-similar place is two more); returns the check. ``poses`` are the
+        keyframe poses when the candidate was queued: the guess, the old local map and the new keyframe's
         neighbours all come from them, so a candidate verified scans later is decided exactly as it would have
         been at once (the graph moves in between; with the current poses, acceptance depended on the schedule)."""
         cfg = self.config
         m, pose, pts = cfg.loop_map_keyframes, poses[k], self._kf_points[k]
         guess = se2.between(poses[c], pose)
-        target = self._points_in(poses, c - m, c + m + 1, poses[c])
-        chk = verify_loop(pts, target, guess, cfg)
+        chk = verify_loop(pts, self._points_in(poses, c - m, c + m + 1, poses[c]), guess, cfg)
         if cfg.loop_static_radius_m > 0 and chk.ok and chk.ambiguity > cfg.loop_static_ambiguity:
             # a self-similar place: verify again on what two keyframes saw on the same surface (a moving object
             # may be all that breaks the tie): the old keyframe's local map, the new scan against the keyframes
             # just before it
+            yield
             r, a, s = cfg.loop_static_radius_m, cfg.loop_static_normal_rad, cfg.loop_static_seen_m
             old = [self._points_in(poses, j, j + 1, poses[c]) for j in range(max(c - m, 0), min(c + m + 1, k))]
             new = [pts] + [self._points_in(poses, j, j + 1, pose) for j in range(max(k - m, 0), k)]
-            static_pts = pts[confirmed_mask(new, r, a, s)[:len(pts)]]
-            chk = verify_loop(static_pts, np.vstack(old)[confirmed_mask(old, r, a, s)], guess, cfg)
+            static_pts, static_old = pts[confirmed_mask(new, r, a, s)[:len(pts)]], np.vstack(old)
+            static_old = static_old[confirmed_mask(old, r, a, s)]
+            yield
+            chk = verify_loop(static_pts, static_old, guess, cfg)
         return chk
 
     def close_loop_now(self, z: Array) -> bool:
@@ -467,12 +468,12 @@ class LidarSLAM(EstimatorLifecycle):
         if self.graph is None or len(self._kf_step) < 2:
             return False
         k = len(self._kf_step) - 1
-        found = [r for r in self._search_loops(k) if r[3]]
-        events = [LoopEvent(self._kf_step[c], self._kf_step[k], True, t) for c, t, _, _ in found]
+        found = [(c, chk) for c, chk in self._search_loops(k) if chk.ok]
+        events = [LoopEvent(self._kf_step[c], self._kf_step[k], True, chk.transform) for c, chk in found]
         if found:
             # the incremental graph takes edges only with a new pose: re-anchor through a whole-graph solve
-            for c, t, info, _ in found:
-                self.graph.add_loop(c, k, t, info)
+            for c, chk in found:
+                self.graph.add_loop(c, k, chk.transform, chk.information)
             self._version += 1
             self._pose = self.graph.poses[-1].copy()
             self.loops_accepted += len(found)

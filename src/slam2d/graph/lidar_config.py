@@ -22,6 +22,10 @@ def _loop_icp() -> ICPConfig:
     return ICPConfig(max_correspondence_m=0.3, trim_fraction=0.8, max_iterations=50, tolerance=1e-4)
 
 
+def _track_correlative() -> CorrelativeConfig:
+    return CorrelativeConfig(window_xy_m=0.5, window_theta_rad=0.5)
+
+
 @dataclass(frozen=True, slots=True, kw_only=True)
 class LidarSLAMConfig:
     """Settings of the lidar SLAM estimator."""
@@ -40,6 +44,14 @@ class LidarSLAMConfig:
     """tracking scan matcher."""
     min_fitness: float = 0.5
     """a tracking match needs this fraction of the scan's points matched, else the odometry guess is kept."""
+    track_rematch_rmse_m: float = 0.05
+    """a tracking match whose residual RMS is above this (or that matched too few points, or failed) is redone from
+    a correlative search (:mod:`slam2d.graph.lidar_tracking`); 0.05 m is above the 99.9th percentile of the
+    tracking residual on ACES and intel (0.03 m), where the wrong minima of an in-place spin had 0.14-0.16 m (m)."""
+    track_correlative: CorrelativeConfig = field(default_factory=_track_correlative)
+    """the window of that re-match: it must cover the guess error of a poor odometry step."""
+    track_rematch_points: int = 180
+    """points of the scan (evenly spread) in that correlative search (0: no re-match)."""
     min_sigma_xy_m: float = 0.02
     """floor on the standard deviation of a keyframe edge in x and y (ICP Hessians are over-confident) (m)."""
     min_sigma_theta_rad: float = 0.005
@@ -113,12 +125,14 @@ class LidarSLAMConfig:
     """Gauss-Newton iterations on the whole keyframe graph after a loop entered, one per scan over the next scans
     (0: the incremental graph's local solve only)."""
     loop_verify_per_scan: int = 1
-    """loop candidates verified per scan: candidates are queued when a keyframe is made and verified over the
-    following scans, which bounds the work of every scan."""
+    """verification stages run per scan: candidates are queued when a keyframe is made and verified over the
+    following scans, one stage at a time (the correlative + ICP check; a self-similar place's static re-check is
+    two more: its masks, its match), which bounds the work of every scan."""
     loop_queue: int = 16
-    """at most this many candidates wait; when full, the oldest is dropped unverified (counted). Also the delay,
-    in scans, from queueing a candidate to its decision entering the graph: fixed, so that results do not depend
-    on when within that delay the candidate was verified."""
+    """the delay, in scans, from queueing a candidate to its decision entering the graph: fixed, so that results
+    do not depend on when within that delay the candidate was verified. Also at most this many candidates are in
+    flight (queued in the last ``loop_queue`` scans); more are refused unverified (counted), a rule that does not
+    depend on how fast they are verified either."""
     graph: IncrementalConfig = field(default_factory=lambda: IncrementalConfig(
         window=30, loop_neighbourhood=3, iterations=3, full_every=200, loop_kernel="cauchy"))
     """incremental pose-graph settings (in keyframes). Loop edges carry a Cauchy kernel (3 sigma): with plain least
@@ -174,7 +188,8 @@ class LidarSLAMConfig:
         if (self.surveyed_markers or self.map_unsurveyed_markers) and self.layers is None:
             raise ValueError("LidarSLAMConfig.surveyed_markers and map_unsurveyed_markers are used by the lifelong "
                              "mode only (set layers)")
-        check_nonnegative(self, "loop_static_radius_m")
+        check_nonnegative(self, "loop_static_radius_m", "track_rematch_points")
+        check_positive(self, "track_rematch_rmse_m")
         if self.loop_map_keyframes < 0:
             raise ValueError(f"LidarSLAMConfig.loop_map_keyframes must be >= 0 (got {self.loop_map_keyframes})")
 

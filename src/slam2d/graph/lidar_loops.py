@@ -28,7 +28,7 @@ from slam2d.frontend.icp import ICPTarget, estimate_normals, icp, prepare_target
 from slam2d.geometry import se2
 from slam2d.graph.lidar_config import LidarSLAMConfig
 
-__all__ = ["LoopCheck", "confirmed_mask", "verify_loop"]
+__all__ = ["LoopCheck", "confirmed_mask", "loops_agree", "verify_loop"]
 
 Array = NDArray[np.float64]
 
@@ -143,3 +143,17 @@ def unique_in_wide_window(pts: Array, target: Array, t: Array, cfg: LidarSLAMCon
     wide = replace(cfg.correlative, window_xy_m=cfg.loop_wide_window_m, coarse_cells=cfg.loop_wide_step_cells,
                    max_refined=1)
     return correlative_match(pts[::3], target, t, wide).ambiguity <= cfg.loop_wide_max_ambiguity
+
+
+def loops_agree(old: tuple[int, int, Array], new: tuple[int, int, Array], p: Array, cfg: LidarSLAMConfig) -> bool:
+    """Do two verified loops (c1, k1, T_c1_k1) and (c2, k2, T_c2_k2) agree? Going from c1 to the new keyframe
+    through the first loop and the tracked chain must land where the old chain c1 -> c2 and the second loop
+    put it (a wrong loop among identical places agrees with a right one only by accident). ``p``: the keyframe
+    poses when the second loop was queued (k1 <= k2, so they hold every keyframe involved)."""
+    (c1, k1, t1), (c2, k2, t2) = old, new
+    if c1 == c2 and k1 == k2:
+        return False
+    lhs = t1 if k1 == k2 else se2.compose(t1, se2.between(p[k1], p[k2]))
+    rhs = se2.compose(se2.between(p[c1], p[c2]), t2)
+    e = se2.local(lhs, rhs)
+    return bool(np.hypot(e[0], e[1]) <= cfg.loop_pair_xy_m and abs(e[2]) <= cfg.loop_pair_theta_rad)
