@@ -10,7 +10,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import dataset_path
 from slam2d.cli.main import main
 from slam2d.eval.gps import gps_ate
 from slam2d.geometry import se2
@@ -21,6 +20,7 @@ from slam2d.io.datasets.plaza import load_plaza
 from slam2d.io.datasets.victoria import load_victoria, reobservation_gaps_m
 from slam2d.lab.registry import make_config
 from slam2d.models.sensors import range_bearing
+from testkit import dataset_path
 
 
 def chain(u: np.ndarray, start: np.ndarray) -> np.ndarray:

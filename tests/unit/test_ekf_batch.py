@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 import slam2d
-from conftest import dense_joseph
 from slam2d.filters.ekf_slam import (
     CovarianceError,
     EKFConfig,
@@ -14,6 +13,7 @@ from slam2d.filters.ekf_slam import (
 )
 from slam2d.lab.registry import make_estimator
 from slam2d.models.sensors import range_bearing
+from testkit import dense_joseph
 
 
 def _state(rng, n_l):

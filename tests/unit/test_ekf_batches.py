@@ -4,13 +4,13 @@ Joseph form applied chunk by chunk, and against chained calls of the single join
 import numpy as np
 import pytest
 
-from conftest import dense_joseph
 from slam2d.filters.ekf_slam import (
     CovarianceError,
     ekf_update_range_bearing_batch,
     ekf_update_range_bearing_batches,
 )
 from slam2d.models.sensors import range_bearing
+from testkit import dense_joseph
 
 R = np.diag([0.1**2, 0.02**2])
 

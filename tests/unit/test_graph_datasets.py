@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from conftest import dataset_path
 from slam2d.graph import OptimizerConfig, Values, chi2, optimize
 from slam2d.graph.initialization import chordal_poses
 from slam2d.graph.problem import Analysis
 from slam2d.io import read_graph
+from testkit import dataset_path
 
 pytestmark = pytest.mark.slow
 

@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import dataset_path
 from slam2d.cli.main import main
 from slam2d.eval.relations import read_relations, relation_errors
 from slam2d.geometry import se2
@@ -16,6 +15,7 @@ from slam2d.io.tum import read_tum
 from slam2d.lab.registry import make_estimator
 from slam2d.lab.runner import run
 from slam2d.sim import simulate
+from testkit import dataset_path
 
 
 def write_carmen_from_sim(tmp: Path, steps: int = 300) -> tuple[Path, np.ndarray, np.ndarray]:

@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import dataset_path
 from slam2d.geometry import se2
 from slam2d.geometry.angles import angle_diff
 from slam2d.io.datasets import DatasetFormatError, load_dataset
@@ -20,6 +19,7 @@ from slam2d.io.datasets.mrclam import CAMERA_DELAY_S, ODOMETRY_DELAY_S, load_mrc
 from slam2d.log import Log
 from slam2d.models.sensors import range_bearing
 from slam2d.multi_log import MultiRobotLog, RobotSightings
+from testkit import dataset_path
 
 HEADER = "# synthetic\n# file\n# for\n# tests\n"
 LANDMARKS = {6: (2.0, 1.0), 7: (-1.0, 2.5), 8: (0.5, -2.0)}

@@ -9,11 +9,11 @@ import os
 
 import pytest
 
-from conftest import dataset_path
 from slam2d.io.datasets import load_dataset
 from slam2d.io.datasets.mrclam import load_mrclam_all
 from slam2d.lab.multi_robot import run_multi
 from slam2d.lab.runner import run_named
+from testkit import dataset_path
 
 #: each full run takes 15-25 min on the loaded 2-core CI machine, beyond the suite's budget: these run on request
 #: (SLAM2D_LONG_TESTS=1); `python benchmarks/multi_robot.py --mode ...` prints the same numbers

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 import slam2d
-from conftest import dataset_path
 from slam2d.graph.range_only import RangeOnlyConfig, range_only_slam, trilaterate
+from testkit import dataset_path
 
 
 def test_trilateration_is_exact_without_noise():

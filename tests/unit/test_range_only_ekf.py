@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 import slam2d
-from conftest import dataset_path
 from slam2d.eval.consistency import monte_carlo_consistency
 from slam2d.filters.range_only_ekf import RangeOnlyEKF, RangeOnlyEKFConfig
 from slam2d.geometry.angles import angle_diff
@@ -17,6 +16,7 @@ from slam2d.lab.registry import make_config
 from slam2d.log import Observations, Step
 from slam2d.models.sensors import SensorConfig
 from slam2d.sim.simulator import simulate
+from testkit import dataset_path
 
 
 def test_refine_point_is_exact_without_noise_and_beats_the_linear_fit_with_noise():
