@@ -13,7 +13,9 @@ from the saved map at random unknown poses and must relocalise.
    worlds are the moved pallets (carried into the map's frame); the IoU outside them, how many cells differ on
    and off them, and where the cells that joined or left the static layer lie. ``--estimator lidar-lifelong`` runs
    the sessions with map layers (flights 2 and 3 localise against the saved static layer and update it; their maps
-   keep the saved one's cell lattice); ``lidar`` re-draws each flight's map from its keyframe scans.
+   keep the saved one's cell lattice; at the end of each, how many of the new pallet faces' cells the dynamic layer
+   holds: changes to the loaded map stay there, :mod:`slam2d.maps.layer_changes`); ``lidar`` re-draws each
+   flight's map from its keyframe scans.
 
 Errors of accepted poses are given against the truth and in the map's frame (:func:`map_frame`: flight 1 draws the
 map with its own drift, about half a degree here, which no relocaliser can see). ``--markers surveyed`` (lifelong
