@@ -13,7 +13,9 @@ from the saved map at random unknown poses and must relocalise.
    worlds are the moved pallets (carried into the map's frame); the IoU outside them, how many cells differ on
    and off them, and where the cells that joined or left the static layer lie. ``--estimator lidar-lifelong`` runs
    the sessions with map layers (flights 2 and 3 localise against the saved static layer and update it; their maps
-   keep the saved one's cell lattice); ``lidar`` re-draws each flight's map from its keyframe scans.
+   keep the saved one's cell lattice; at the end of each, how many of the new pallet faces' cells the dynamic layer
+   holds: changes to the loaded map stay there, :mod:`slam2d.maps.layer_changes`); ``lidar`` re-draws each
+   flight's map from its keyframe scans.
 
 Errors of accepted poses are given against the truth and in the map's frame (:func:`map_frame`: flight 1 draws the
 map with its own drift, about half a degree here, which no relocaliser can see). ``--markers surveyed`` (lifelong
@@ -42,6 +44,7 @@ from slam2d.geometry import se2
 from slam2d.graph.lidar import LidarSLAMConfig, LifelongLidarConfig
 from slam2d.graph.lidar_session import LidarSession, LidarSessionConfig
 from slam2d.lab.runner import run
+from slam2d.maps.layer_changes import changed_mask
 from slam2d.maps.store import MapSnapshot
 from slam2d.sim.scenarios import ScenarioConfig
 from slam2d.sim.simulator import Simulator, simulate, spawn_streams
@@ -141,6 +144,25 @@ def changes(a: MapSnapshot, b: MapSnapshot, walls_a: np.ndarray, walls_b: np.nda
             "removed_cells": float(len(removed)),
             "removed_on_old_pallets": len(removed & old_cells) / max(len(removed), 1),
             "new_pallet_cells_in_static": len(segment_cells(came, res) & cb) / max(len(segment_cells(came, res)), 1)}
+
+
+def moved_in_dynamic(est: LidarSession, walls_a: np.ndarray, walls_b: np.ndarray,
+                     frame: np.ndarray) -> dict[str, float]:
+    """The dynamic layer at the end (last scan) of a lifelong session from a saved map against the pallets moved
+    since the previous flight: the new pallet faces' cells (in the map's frame), how many of them the dynamic layer
+    holds (also with one cell of margin), and the layer's size (its semi-static part: changes to the loaded map)."""
+    lay = est.lidar.map_layers()
+    res = lay.resolution
+    wa, wb = np.round(walls_a, 6).reshape(-1, 4), np.round(walls_b, 6).reshape(-1, 4)
+    ka = set(map(tuple, wa.tolist()))
+    came = to_map_frame(walls_b.reshape(-1, 4)[[tuple(w) not in ka for w in wb.tolist()]], frame)
+    new = segment_cells(came, res)
+    pts = lay.dynamic_points(lay.last_time_s)
+    dyn = set(map(tuple, np.floor(pts / res).astype(np.int64).tolist()))
+    chg = int(np.count_nonzero(changed_mask(lay)))
+    return {"new_pallet_cells": float(len(new)), "new_pallet_cells_dynamic": float(len(new & dyn)),
+            "new_pallet_margin_dynamic": float(len(dilate(new) & dyn)), "dynamic_cells": float(len(dyn)),
+            "changed_cells": float(chg)}
 
 
 def map_frame(estimated: np.ndarray, true: np.ndarray) -> np.ndarray:
@@ -258,7 +280,7 @@ def main() -> None:
           f"{c['occupancy_cells']} cells, {int(np.isfinite(maps[0].layers['floor_markers'][:, 0]).sum())} markers")
     rng = np.random.default_rng(args.seed)
     table, record = [], {"world": base, "estimator": args.estimator, "markers": args.markers, "trials": {},
-                         "iou": {}, "iou_co_observed": {}, "changes": {}}
+                         "iou": {}, "iou_co_observed": {}, "changes": {}, "dynamic": {}}
     for flight in (1, 2):
         if not args.skip_trials:
             rows = trials(maps[-1], scenario(base, flight), args.seed, args.starts, args.budget_s, rng, frame)
@@ -277,6 +299,7 @@ def main() -> None:
         exact, tol = record["iou"][f"{flight}-{flight + 1}"] = iou(maps[-2], maps[-1])
         co = record["iou_co_observed"][f"{flight}-{flight + 1}"] = co_observed_iou(maps[-2], maps[-1])
         ch = record["changes"][f"{flight}-{flight + 1}"] = changes(maps[-2], maps[-1], walls, walls_next, frame)
+        dy = moved_in_dynamic(est, walls, walls_next, frame) if lifelong else None
         walls = walls_next
         print(f"flight {flight + 1} session: {t:.0f} s, relocalised at step {est.accepted_step}, "
               f"{est.map_loops} loops into the saved map; static layer IoU vs flight {flight}: {exact:.3f} "
@@ -288,6 +311,12 @@ def main() -> None:
               f"layer ({ch['added_on_new_pallets']:.0%} on a new pallet place), {ch['removed_cells']:.0f} left it "
               f"({ch['removed_on_old_pallets']:.0%} on an old one); {ch['new_pallet_cells_in_static']:.0%} of the "
               "new pallet faces' cells are static")
+        if dy is not None:
+            record["dynamic"][f"{flight}-{flight + 1}"] = dy
+            print(f"  end of flight {flight + 1}: the dynamic layer holds {dy['dynamic_cells']:.0f} cells "
+                  f"({dy['changed_cells']:.0f} changes to the loaded map); of the {dy['new_pallet_cells']:.0f} cells "
+                  f"of the new pallet faces {dy['new_pallet_cells_dynamic']:.0f} are in it "
+                  f"({dy['new_pallet_margin_dynamic']:.0f} dynamic cells within one cell of them)")
     cols = ["flight", "markers", "starts", "success", "success_rate", "wrong", "undecided", "decide_s_median",
             "decide_s_max", "error_m_max", "error_m_median", "map_error_m_median", "map_error_deg_median",
             "cpu_s_per_start"]

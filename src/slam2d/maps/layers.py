@@ -36,6 +36,8 @@ refreshed only around cells that joined or left the layer) pairs every scan poin
 Gauss-Newton minimises point-to-line distances (point-to-point at uprights and corners), Cauchy-weighted, with the
 odometry guess as a weak prior; dynamic points are left out by the caller. No KD-tree, no loop over points. (A plain
 distance field to cell centres was tried first: half-cell quantisation biased the heading by ~3 mrad a match.)
+**Loaded maps**: what appears where the loaded map saw free ground is a change, held in the dynamic layer until it
+has lasted ``changed_persist_s`` (:mod:`slam2d.maps.layer_changes`).
 """
 
 from __future__ import annotations
@@ -49,6 +51,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from slam2d.config import check_positive
 from slam2d.geometry import se2
+from slam2d.maps.layer_changes import changed_mask, load_changes, saved_ages, track_changes
 from slam2d.maps.layer_stats import LayerStats, PoseBuffer
 from slam2d.maps.occupancy import OccupancyConfig, OccupancyGrid
 
@@ -89,6 +92,9 @@ class LayersConfig:
     """for this long after the first scan, unexplored cells need only ``bootstrap_persist_s``: the first map is
     seen from one place (far walls sampled a beam width apart) and a scan matched against it drags a little; cells
     placed quickly, while the pose is still good, keep that early error from being built into the map (s)."""
+    changed_persist_s: float = 1800.0
+    """from a saved map, a cell it saw free that becomes occupied (a pallet put down) joins the static layer after
+    the change has lasted this long, across flights (s; :mod:`slam2d.maps.layer_changes`)."""
     bootstrap_persist_s: float = 0.3
     """the streak an unexplored cell needs during ``bootstrap_s`` (s)."""
     max_gap_s: float = 1.5
@@ -123,9 +129,9 @@ class LayersConfig:
 
     def __post_init__(self) -> None:
         check_positive(self, "resolution_m", "hit_logodds", "miss_logodds", "max_logodds", "occupied_logodds",
-                       "persist_s", "new_persist_s", "max_gap_s", "bootstrap_persist_s", "bootstrap_s", "field_max_m",
-                       "dynamic_distance_m", "dynamic_decay_s", "match_cauchy_m", "inlier_m", "grow_margin_m",
-                       "prior_sigma_xy_m", "prior_sigma_theta_rad", "range_sigma_m")
+                       "persist_s", "new_persist_s", "changed_persist_s", "max_gap_s", "bootstrap_persist_s",
+                       "bootstrap_s", "field_max_m", "dynamic_distance_m", "dynamic_decay_s", "match_cauchy_m",
+                       "inlier_m", "grow_margin_m", "prior_sigma_xy_m", "prior_sigma_theta_rad", "range_sigma_m")
         if not self.min_logodds < self.free_logodds < 0:
             raise ValueError(f"LayersConfig needs min_logodds < free_logodds < 0 (got {self.min_logodds}, "
                              f"{self.free_logodds})")
@@ -175,6 +181,8 @@ class MapLayers:
     nearest: NDArray[np.int32]
     normal: NDArray[np.float32]
     line: NDArray[np.bool_]
+    changed_since: NDArray[np.float32]  # loaded maps only (slam2d.maps.layer_changes)
+    prior_free: NDArray[np.bool_]
 
     def __init__(self, config: LayersConfig | None = None) -> None:
         self.config = config or LayersConfig()
@@ -184,10 +192,12 @@ class MapLayers:
         # streak began in a cell known free), dyn_seen (last time a dynamic point hit the cell), mean (mean hit
         # offset from the cell centre, m: the map is sub-cell accurate), count (hits in that mean, capped),
         # field (distance to the nearest static cell's mean point, m; inf beyond field_max_m), nearest (flat
-        # index of that cell, -1: none), normal and line (the static cell's surface normal, when its
-        # neighbourhood is a line; else the cell is matched point to point)
-        for name, (fill, dtype, trail) in self._FILL.items():
+        # index of that cell, -1: none), normal and line (its surface normal; line: matched point to line)
+        self._fill = dict(self._FILL)  # a loaded map adds the change-tracking arrays (layer_changes.CHANGE_FILL)
+        for name, (fill, dtype, trail) in self._fill.items():
             setattr(self, name, np.full((0, 0, *trail), fill, dtype=dtype))
+        self.prior_map, self.last_time_s = False, 0.0
+        self.pending_ages: NDArray[np.float32] | None = None
         self.integrations = 0
         self.started_s = 0.0
         self.promoted = 0
@@ -233,7 +243,7 @@ class MapLayers:
         if self.nearest.size:  # flat indices into the old grid -> into the new one
             r, c = np.divmod(self.nearest.astype(np.int64), self.shape[1])
             self.nearest = np.where(self.nearest >= 0, (r + off[1]) * shape[1] + c + off[0], -1).astype(np.int32)
-        for name, (fill, dtype, trail) in self._FILL.items():
+        for name, (fill, dtype, trail) in self._fill.items():
             old = getattr(self, name)
             new: NDArray[Any] = np.full((*shape, *trail), fill, dtype=dtype)
             if old.size:
@@ -255,6 +265,8 @@ class MapLayers:
         f, lo, app = self.field.ravel()[flat], self.logodds.ravel()[flat], self.appeared.ravel()[flat]
         near = inside & (f <= self.config.dynamic_distance_m)
         dyn = inside & ~near & ((lo <= self.config.free_logodds) | app)
+        if self.prior_map:  # a change to the loaded map
+            dyn |= inside & ~near & np.isfinite(self.changed_since.ravel()[flat])
         out[near] = STATIC
         out[dyn] = DYNAMIC
         return out
@@ -282,6 +294,7 @@ class MapLayers:
         r = np.hypot(d[:, 0], d[:, 1])
         reach = r - (cfg.endpoint_guard_cells + 0.5) * res
         n = int(np.ceil(max(float(reach.max()), 0.0) / res))
+        miss = np.zeros(0, np.int64)
         if n > 0:
             s = (np.arange(n) + 0.5) * res
             keep = s[None, :] < reach[:, None]
@@ -302,6 +315,7 @@ class MapLayers:
         # hits: evidence, sighting streaks, promotion
         hit, _ = self.cell_index(world)
         hit = self._snap(world, hit)
+        track_changes(self, t, miss, hit)  # loaded maps only
         before = lo[hit]
         fresh = (t - last[hit]) > cfg.max_gap_s
         streak = self.streak.ravel()
@@ -314,6 +328,8 @@ class MapLayers:
         new_need = cfg.bootstrap_persist_s if time_s - self.started_s < cfg.bootstrap_s else cfg.new_persist_s
         need = np.where(self.appeared.ravel()[hit], cfg.persist_s, new_need)
         ready = (lo[hit] >= cfg.occupied_logodds) & ((t - streak[hit]) >= need)
+        if self.prior_map:  # a change to the loaded map waits for changed_persist_s
+            ready &= (t - self.changed_since.ravel()[hit]) >= cfg.changed_persist_s
         new = hit[~st[hit] & (ready | bootstrap)]
         if new.size:
             st[new] = True
@@ -517,7 +533,8 @@ class MapLayers:
         age = np.float32(time_s) - self.dyn_seen
         with np.errstate(over="ignore", invalid="ignore"):
             out = np.exp(-np.maximum(age, 0) / np.float32(self.config.dynamic_decay_s))
-        return np.where(np.isfinite(self.dyn_seen), out, 0).astype(np.float32)
+        out = np.where(np.isfinite(self.dyn_seen), out, 0).astype(np.float32)
+        return np.where(changed_mask(self), np.float32(1.0), out) if self.prior_map else out
 
     def dynamic_points(self, time_s: float, threshold: float = 0.5) -> Array:
         """(N,2) centres of the dynamic layer's cells whose occupancy at ``time_s`` is above ``threshold``."""
@@ -540,17 +557,16 @@ class MapLayers:
 
     def saved(self) -> dict[str, NDArray[Any]]:
         """The static layer as named arrays for a saved map: frame [x0, y0, cell size], log-odds, membership, and
-        each cell's mean hit point (the sub-cell map the matcher pulls towards). The sighting streaks and the
-        dynamic layer are not kept: they describe one flight."""
+        each cell's mean hit point (the sub-cell map the matcher pulls towards); from a loaded map, the ages of open
+        changes. The sighting streaks and the decaying dynamic layer are not kept: they describe one flight."""
         return {"static_frame": np.array([self.origin[0], self.origin[1], self.resolution]),
                 "static_logodds": self.logodds.copy(), "static_mask": self.static.copy(),
-                "static_mean": self.mean.copy()}
+                "static_mean": self.mean.copy(), **saved_ages(self)}
 
     @classmethod
     def from_saved(cls, config: LayersConfig | None, arrays: Mapping[str, NDArray[Any]]) -> MapLayers:
-        """Layers whose static layer is a saved one (:meth:`saved`), ready to localise against: no bootstrap (the
-        map exists), every saved static cell stays until it is seen through, new cells follow the persistence
-        rule. ValueError when an array is missing or the cell size differs from ``config``'s."""
+        """Layers whose static layer is a saved one (:meth:`saved`), ready to localise against (no bootstrap; changes
+        to it are tracked). ValueError when an array is missing or the cell size differs from ``config``'s."""
         lay = cls(config)
         missing = [n for n in cls.SAVED if n not in arrays]
         if missing:
@@ -571,6 +587,7 @@ class MapLayers:
         lay.logodds[:] = lo
         lay.static[:] = mask
         lay.mean[:] = mean
+        load_changes(lay, arrays)
         lay.count[mask] = 10.0  # settled means: new hits still move them, a few hits do not overwrite them
         lay.integrations, lay.started_s = 1, -np.inf  # not a first scan, and past the bootstrap
         if mask.any():
@@ -580,4 +597,4 @@ class MapLayers:
 
     def nbytes(self) -> int:
         """Bytes held by the grids."""
-        return sum(getattr(self, n).nbytes for n in self._FILL)
+        return sum(getattr(self, n).nbytes for n in self._fill)
