@@ -73,6 +73,18 @@ def test_round_trip_is_exact(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.db"]
 
 
+def test_nan_entries_compare_equal_and_real_differences_do_not(tmp_path):
+    """Floor markers not yet placed are NaN: a map with them still equals itself and its round trip."""
+    snap = _snapshot()
+    snap.layers["floor_markers"][2] = np.nan
+    back = MapStore.read(MapStore.write(tmp_path / "n.db", snap))
+    assert snap.equals(snap) and back.equals(snap)
+    other = _snapshot()
+    other.layers["floor_markers"][2] = np.nan
+    other.layers["floor_markers"][3, 0] += 1e-9
+    assert not back.equals(other)
+
+
 def test_map_from_a_simulated_run_round_trips(tmp_path):
     log = simulate("warehouse", seed=0, steps=150)
     snap = snapshot_from_truth(log)

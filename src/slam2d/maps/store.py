@@ -142,19 +142,22 @@ class MapSnapshot:
         """Exact equality of every array, scalar and the metadata."""
         for f in ("keyframe_poses", "keyframe_scans", "descriptors", "scan_angles_rad", "node_ids", "node_poses",
                   "edge_nodes", "edge_poses", "edge_information", "occupancy_logodds", "occupancy_origin"):
-            a, b = getattr(self, f), getattr(other, f)
-            if a.dtype != b.dtype or a.shape != b.shape or not np.array_equal(a, b):
+            if not _same_array(getattr(self, f), getattr(other, f)):
                 return False
         if sorted(self.layers) != sorted(other.layers):
             return False
-        for n, a in self.layers.items():
-            b = other.layers[n]
-            if a.dtype != b.dtype or a.shape != b.shape or not np.array_equal(a, b):
-                return False
+        if not all(_same_array(a, other.layers[n]) for n, a in self.layers.items()):
+            return False
         return (self.world_id == other.world_id and self.scan_max_range_m == other.scan_max_range_m
                 and self.occupancy_resolution_m == other.occupancy_resolution_m
                 and json.dumps(dict(self.metadata), sort_keys=True) == json.dumps(dict(other.metadata),
                                                                                   sort_keys=True))
+
+
+def _same_array(a: np.ndarray, b: np.ndarray) -> bool:
+    """Same dtype, shape and values; NaN equals NaN (floor markers not yet placed are stored as NaN)."""
+    nan_ok = a.dtype.kind in "fc"
+    return a.dtype == b.dtype and a.shape == b.shape and bool(np.array_equal(a, b, equal_nan=nan_ok))
 
 
 @dataclass(frozen=True)
