@@ -45,7 +45,7 @@ def good_fit(res: ICPResult, min_fitness: float, max_rmse_m: float) -> bool:
 
 def _better(new: ICPResult, old: ICPResult, min_fitness: float, max_rmse_m: float) -> bool:
     """Does the re-match ``new`` fit better than the first match ``old``?"""
-    if not (new.converged and new.fitness >= min_fitness and np.all(np.isfinite(new.covariance))):
+    if not good_fit(new, min_fitness, np.inf):
         return False
     if not good_fit(old, min_fitness, np.inf):  # the first match failed outright
         return True
