@@ -44,7 +44,7 @@ from slam2d.geometry import se2
 from slam2d.graph.lidar import LidarSLAMConfig, LifelongLidarConfig
 from slam2d.graph.lidar_session import LidarSession, LidarSessionConfig
 from slam2d.lab.runner import run
-from slam2d.maps.layer_changes import changed_mask
+from slam2d.maps.layer_changes import changed_mask, removed_mask
 from slam2d.maps.store import MapSnapshot
 from slam2d.sim.scenarios import ScenarioConfig
 from slam2d.sim.simulator import Simulator, simulate, spawn_streams
@@ -154,15 +154,19 @@ def moved_in_dynamic(est: LidarSession, walls_a: np.ndarray, walls_b: np.ndarray
     lay = est.lidar.map_layers()
     res = lay.resolution
     wa, wb = np.round(walls_a, 6).reshape(-1, 4), np.round(walls_b, 6).reshape(-1, 4)
-    ka = set(map(tuple, wa.tolist()))
+    ka, kb = set(map(tuple, wa.tolist())), set(map(tuple, wb.tolist()))
     came = to_map_frame(walls_b.reshape(-1, 4)[[tuple(w) not in ka for w in wb.tolist()]], frame)
+    gone = to_map_frame(walls_a.reshape(-1, 4)[[tuple(w) not in kb for w in wa.tolist()]], frame)
     new = segment_cells(came, res)
     pts = lay.dynamic_points(lay.last_time_s)
     dyn = set(map(tuple, np.floor(pts / res).astype(np.int64).tolist()))
     chg = int(np.count_nonzero(changed_mask(lay)))
+    held = lay.cell_centres(np.flatnonzero(removed_mask(lay).ravel()))
+    held_cells = set(map(tuple, np.floor(held / res).astype(np.int64).tolist()))
     return {"new_pallet_cells": float(len(new)), "new_pallet_cells_dynamic": float(len(new & dyn)),
             "new_pallet_margin_dynamic": float(len(dilate(new) & dyn)), "dynamic_cells": float(len(dyn)),
-            "changed_cells": float(chg)}
+            "changed_cells": float(chg), "removals_held": float(len(held_cells)),
+            "removals_held_on_old_pallets": float(len(held_cells & dilate(segment_cells(gone, res))))}
 
 
 def map_frame(estimated: np.ndarray, true: np.ndarray) -> np.ndarray:
@@ -316,7 +320,9 @@ def main() -> None:
             print(f"  end of flight {flight + 1}: the dynamic layer holds {dy['dynamic_cells']:.0f} cells "
                   f"({dy['changed_cells']:.0f} changes to the loaded map); of the {dy['new_pallet_cells']:.0f} cells "
                   f"of the new pallet faces {dy['new_pallet_cells_dynamic']:.0f} are in it "
-                  f"({dy['new_pallet_margin_dynamic']:.0f} dynamic cells within one cell of them)")
+                  f"({dy['new_pallet_margin_dynamic']:.0f} dynamic cells within one cell of them); "
+                  f"{dy['removals_held']:.0f} static cells await removal ({dy['removals_held_on_old_pallets']:.0f} "
+                  "of them on the old pallet places)")
     cols = ["flight", "markers", "starts", "success", "success_rate", "wrong", "undecided", "decide_s_median",
             "decide_s_max", "error_m_max", "error_m_median", "map_error_m_median", "map_error_deg_median",
             "cpu_s_per_start"]

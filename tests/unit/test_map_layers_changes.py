@@ -1,12 +1,13 @@
 """Changes to a loaded map (slam2d.maps.layer_changes): pallets put on ground the saved map saw free stay in the
-dynamic layer; removed ones are cleared; cold starts are untouched."""
+dynamic layer, removed ones stay in the static layer awaiting removal; both until changed_persist_s; cold starts
+are untouched."""
 
 from __future__ import annotations
 
 import numpy as np
 from test_map_layers import POSES, ROOM, mapped_room, scan_at, segment_distances_min, wall_cells
 
-from slam2d.maps.layer_changes import SAVED_AGE, changed_mask
+from slam2d.maps.layer_changes import SAVED_AGE, SAVED_REMOVED_AGE, changed_mask, removed_mask
 from slam2d.maps.layers import LayersConfig, MapLayers
 from slam2d.sim.warehouse import boxes_to_segments
 
@@ -59,25 +60,47 @@ def test_pallet_on_ground_the_loaded_map_saw_free_stays_dynamic_until_changed_pe
     assert near_pallet(again, again.static_cells()) > 10, "a change that lasts changed_persist_s joins the map"
 
 
-def test_removed_pallet_is_cleared_from_the_loaded_static_layer() -> None:
+def test_removed_pallet_stays_static_until_the_removal_has_lasted_changed_persist_s() -> None:
     rng = np.random.default_rng(6)
     cold, t = mapped_room(rng)
     t_cold = fly(cold, np.vstack([ROOM, PALLET]), t, 4 * cold.config.persist_s, rng)
     assert near_pallet(cold, cold.static_cells()) > 10
     walls = set(wall_cells(cold).tolist())
-    loaded = MapLayers.from_saved(None, cold.saved())
+    saved_with_pallet = cold.saved()
+    loaded = MapLayers.from_saved(None, saved_with_pallet)
     before = near_pallet(loaded, loaded.static_cells())
-    # the pallet has gone: seen through, it leaves without delay, exactly as on a cold start (one corner cell whose
-    # surface these beams never cross stays in both)
+    # the pallet has gone: a cold start drops it at once (one corner cell whose surface these beams never cross
+    # stays); from the loaded map it stays static, awaiting removal, and is not put into the dynamic layer
     t = fly(loaded, ROOM, 0.0, 5.0, np.random.default_rng(1))
     fly(cold, ROOM, t_cold, 5.0, np.random.default_rng(1))
-    left = near_pallet(loaded, loaded.static_cells())
-    assert left <= 1 < before and left == near_pallet(cold, cold.static_cells())
+    assert near_pallet(cold, cold.static_cells()) <= 1 < before
+    assert near_pallet(loaded, loaded.static_cells()) == before
+    held = near_pallet(loaded, np.flatnonzero(removed_mask(loaded).ravel()))
+    assert held >= before - 1 and held > 10
     assert near_pallet(loaded, np.flatnonzero(loaded.dynamic_occupancy(t - 0.1).ravel() > 0.5)) == 0
     assert walls <= set(loaded.static_cells().tolist())
-    # put back where the loaded map had it static: that restores the map, not a change to it
-    fly(loaded, np.vstack([ROOM, PALLET]), t, 4 * cold.config.persist_s, rng)
-    assert near_pallet(loaded, loaded.static_cells()) > 10
+    assert not removed_mask(loaded).ravel()[np.array(sorted(walls))].any()
+
+    # the removal's age is saved with the map and runs on: with changed_persist_s = 8 s the cells (about 5 s into
+    # their removal) are still static 2 s into the next session and gone 4 s later
+    saved = loaded.saved()
+    age = saved[SAVED_REMOVED_AGE].ravel()
+    cells = np.flatnonzero(removed_mask(loaded).ravel())
+    assert np.all((age[cells] > 0) & (age[cells] <= 5.0)) and np.all(np.delete(age, cells) == -1)
+    again = MapLayers.from_saved(LayersConfig(changed_persist_s=8.0), saved)
+    t2 = fly(again, ROOM, 500.0, 2.0, np.random.default_rng(2))
+    assert near_pallet(again, again.static_cells()) == before
+    fly(again, ROOM, t2, 4.0, np.random.default_rng(3))
+    assert near_pallet(again, again.static_cells()) <= 1, "a removal that lasts changed_persist_s leaves the map"
+    assert walls <= set(again.static_cells().tolist())
+
+    # put back before its removal is due: the clock stops, the pallet never left the map
+    back = MapLayers.from_saved(LayersConfig(changed_persist_s=8.0), saved_with_pallet)
+    t3 = fly(back, ROOM, 0.0, 5.0, np.random.default_rng(4))
+    t3 = fly(back, np.vstack([ROOM, PALLET]), t3, 3.0, np.random.default_rng(5))
+    assert near_pallet(back, np.flatnonzero(removed_mask(back).ravel())) <= 1
+    fly(back, np.vstack([ROOM, PALLET]), t3, 10.0, np.random.default_rng(6))
+    assert near_pallet(back, back.static_cells()) >= before - 1
 
 
 def test_cold_start_is_untouched_by_the_change_rule() -> None:

@@ -36,8 +36,7 @@ refreshed only around cells that joined or left the layer) pairs every scan poin
 Gauss-Newton minimises point-to-line distances (point-to-point at uprights and corners), Cauchy-weighted, with the
 odometry guess as a weak prior; dynamic points are left out by the caller. No KD-tree, no loop over points. (A plain
 distance field to cell centres was tried first: half-cell quantisation biased the heading by ~3 mrad a match.)
-**Loaded maps**: what appears where the loaded map saw free ground is a change, held in the dynamic layer until it
-has lasted ``changed_persist_s`` (:mod:`slam2d.maps.layer_changes`).
+**Loaded maps**: changes to them wait ``changed_persist_s`` (:mod:`slam2d.maps.layer_changes`).
 """
 
 from __future__ import annotations
@@ -51,7 +50,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from slam2d.config import check_positive
 from slam2d.geometry import se2
-from slam2d.maps.layer_changes import changed_mask, load_changes, saved_ages, track_changes
+from slam2d.maps.layer_changes import changed_mask, hold_removals, load_changes, saved_ages, track_changes
 from slam2d.maps.layer_stats import LayerStats, PoseBuffer
 from slam2d.maps.occupancy import OccupancyConfig, OccupancyGrid
 
@@ -92,9 +91,10 @@ class LayersConfig:
     """for this long after the first scan, unexplored cells need only ``bootstrap_persist_s``: the first map is
     seen from one place (far walls sampled a beam width apart) and a scan matched against it drags a little; cells
     placed quickly, while the pose is still good, keep that early error from being built into the map (s)."""
-    changed_persist_s: float = 1800.0
-    """from a saved map, a cell it saw free that becomes occupied (a pallet put down) joins the static layer after
-    the change has lasted this long, across flights (s; :mod:`slam2d.maps.layer_changes`)."""
+    changed_persist_s: float = 28800.0
+    """from a saved map, a change to it (a pallet put down where it saw free ground, one of its static cells seen
+    through) reaches the static layer once it has lasted this long across flights: a shift, as pallets move daily
+    (s; :mod:`slam2d.maps.layer_changes`). 30 min promoted pallets moved within a 44-min full-scale flight."""
     bootstrap_persist_s: float = 0.3
     """the streak an unexplored cell needs during ``bootstrap_s`` (s)."""
     max_gap_s: float = 1.5
@@ -183,6 +183,8 @@ class MapLayers:
     line: NDArray[np.bool_]
     changed_since: NDArray[np.float32]  # loaded maps only (slam2d.maps.layer_changes)
     prior_free: NDArray[np.bool_]
+    removed_since: NDArray[np.float32]
+    prior_static: NDArray[np.bool_]
 
     def __init__(self, config: LayersConfig | None = None) -> None:
         self.config = config or LayersConfig()
@@ -197,7 +199,7 @@ class MapLayers:
         for name, (fill, dtype, trail) in self._fill.items():
             setattr(self, name, np.full((0, 0, *trail), fill, dtype=dtype))
         self.prior_map, self.last_time_s = False, 0.0
-        self.pending_ages: NDArray[np.float32] | None = None
+        self.pending_ages: dict[str, NDArray[np.float32]] | None = None
         self.integrations = 0
         self.started_s = 0.0
         self.promoted = 0
@@ -306,7 +308,7 @@ class MapLayers:
             on = st[miss]  # a static cell is seen through only where the beam crosses its surface point
             miss = np.concatenate([miss[~on], miss[on][self._crossed(pose[:2], d[beam[on]], miss[on])]])
             lo[miss] = np.maximum(lo[miss] - cfg.miss_logodds, cfg.min_logodds)
-            gone = miss[st[miss] & (lo[miss] < 0.0)]
+            gone = hold_removals(self, t, miss[st[miss] & (lo[miss] < 0.0)])  # loaded maps hold their own
             if gone.size:
                 st[gone] = False
                 self.demoted += int(np.unique(gone).size)
@@ -400,11 +402,9 @@ class MapLayers:
 
     def _mark_dirty(self, flat: NDArray[np.int64]) -> None:
         r, c = np.divmod(flat, self.shape[1])
-        box = [int(r.min()), int(c.min()), int(r.max()), int(c.max())]
-        if self._dirty is not None:
-            box = [min(box[0], self._dirty[0]), min(box[1], self._dirty[1]), max(box[2], self._dirty[2]),
-                   max(box[3], self._dirty[3])]
-        self._dirty = box
+        d = self._dirty or [r.max(), c.max(), r.min(), c.min()]
+        self._dirty = [int(min(r.min(), d[0])), int(min(c.min(), d[1])),
+                       int(max(r.max(), d[2])), int(max(c.max(), d[3]))]
 
     def refresh_field(self) -> None:
         """Recompute the distance field around the cells whose static flag changed since the last refresh."""
