@@ -3,8 +3,9 @@
 On a session that starts from a saved map, something that appears where the loaded map had observed free ground
 is a *change to the map* (a pallet put down, a trolley parked), not new structure. Such a cell keeps a *changed
 since* time (the first hit after the load, or after it was last seen free) and stays out of the static layer until
-the change has lasted ``LayersConfig.changed_persist_s`` (30 min by default: longer than a flight, far shorter
-than a shift, so a pallet parked for a day does join). Until then it is labelled dynamic and, while its log-odds
+the change has lasted ``LayersConfig.changed_persist_s`` (8 h by default, a shift: pallets are moved daily, so a
+change that outlasts a shift is structure; 30 min, the first choice, is shorter than a full-scale flight, 44 min,
+and let moved pallets join within one). Until then it is labelled dynamic and, while its log-odds
 says occupied, it is part of the dynamic layer (:meth:`MapLayers.dynamic_occupancy` = 1: a *semi-static* change,
 it does not decay). A changed cell that is seen free again (log-odds at or below ``free_logodds``) forgets its
 clock; a pallet put there later starts a new one.
