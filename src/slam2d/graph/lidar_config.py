@@ -34,7 +34,7 @@ class LidarSLAMConfig:
     """tracked translation since the last keyframe that makes a new keyframe (m)."""
     keyframe_angle_rad: float = 0.25
     """tracked rotation since the last keyframe that makes a new keyframe (rad)."""
-    local_map_keyframes: int = 6
+    local_map_keyframes: int = 4
     """newest keyframes whose points form the tracking target."""
     max_range_m: float = 25.0
     """beams longer than this are not matched (far points are sparse and noisy) (m)."""
@@ -91,6 +91,13 @@ class LidarSLAMConfig:
     loop_max_ambiguity: float = 0.9
     """a loop is rejected when a competing alignment outside the ambiguity radius scores this fraction of the
     best (identical aisles, a corridor's axis)."""
+    loop_retry_window_m: float = 2.5
+    """a candidate whose correlative search matched nothing (score gate) is searched again over +- this window,
+    counting only rivals that are peaks of their own (:func:`slam2d.graph.lidar_loops.wide_correlative`), one more
+    verification stage; every later gate and the pair confirmation still apply, and such a loop is always
+    re-verified on static structure. ACES's return to its start (guess 1.7 m off): closed at 2.5 m, not reliably
+    at 2.0 (a best alignment near the window's edge is rejected). Retrying ambiguity failures too let a warehouse
+    seed accept loops slid 2.3 m along an aisle (m; 0: off)."""
     loop_wide_window_m: float = 0.0
     """a loop that passed every gate is searched again over +- this window (coarse only) and rejected when another
     alignment there scores ``loop_wide_max_ambiguity`` of the best: identical aisles farther apart than the
@@ -188,7 +195,7 @@ class LidarSLAMConfig:
         if (self.surveyed_markers or self.map_unsurveyed_markers) and self.layers is None:
             raise ValueError("LidarSLAMConfig.surveyed_markers and map_unsurveyed_markers are used by the lifelong "
                              "mode only (set layers)")
-        check_nonnegative(self, "loop_static_radius_m", "track_rematch_points")
+        check_nonnegative(self, "loop_static_radius_m", "track_rematch_points", "loop_retry_window_m")
         check_positive(self, "track_rematch_rmse_m")
         if self.loop_map_keyframes < 0:
             raise ValueError(f"LidarSLAMConfig.loop_map_keyframes must be >= 0 (got {self.loop_map_keyframes})")
