@@ -143,8 +143,7 @@ def _return(rng: np.random.Generator, posts: bool) -> tuple[Array, Array, Array,
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_a_return_beyond_the_window_is_found_by_the_wide_search_in_a_corridor_pinned_by_its_end(seed: int) -> None:
     rng = np.random.default_rng(seed)
-    cfg = LidarSLAMConfig()
-    assert cfg.loop_retry_window_m >= 2.0  # on by default
+    cfg = LidarSLAMConfig(loop_retry_window_m=2.5)
     pts, target, guess, truth = _return(rng, posts=False)
     first = verify_loop(pts, target, guess, cfg)  # +-1 m: the right alignment is outside, nothing matches
     assert not first.ok and first.reason == "score"  # what makes the back end search wider
@@ -167,7 +166,7 @@ def test_a_return_beyond_the_window_is_found_by_the_wide_search_in_a_corridor_pi
 def test_the_wide_search_rejects_a_corridor_of_repeating_posts(seed: int) -> None:
     """Posts every 1.5 m: the alignments 1.5 m either side are peaks of their own and score as well."""
     rng = np.random.default_rng(seed)
-    cfg = LidarSLAMConfig()
+    cfg = LidarSLAMConfig(loop_retry_window_m=2.5)
     pts, target, guess, _ = _return(rng, posts=True)
     wide = verify_loop(pts, target, guess, cfg, wide=True)
     assert not wide.ok and wide.reason in ("ambiguity", "edge")

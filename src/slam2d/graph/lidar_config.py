@@ -34,8 +34,10 @@ class LidarSLAMConfig:
     """tracked translation since the last keyframe that makes a new keyframe (m)."""
     keyframe_angle_rad: float = 0.25
     """tracked rotation since the last keyframe that makes a new keyframe (rad)."""
-    local_map_keyframes: int = 4
-    """newest keyframes whose points form the tracking target."""
+    local_map_keyframes: int = 6
+    """newest keyframes whose points form the tracking target. With ``loop_retry_window_m=2.5``, 4 gave aces 0.0365
+    m (0.0380 at 6; at 3, 5, 10 with an earlier retry rule 0.0383, 0.0383, 0.0394: no trend), mit-csail 0.0310,
+    fr079 0.0418, intel 0.0151."""
     max_range_m: float = 25.0
     """beams longer than this are not matched (far points are sparse and noisy) (m)."""
     min_range_m: float = 0.05
@@ -91,13 +93,20 @@ class LidarSLAMConfig:
     loop_max_ambiguity: float = 0.9
     """a loop is rejected when a competing alignment outside the ambiguity radius scores this fraction of the
     best (identical aisles, a corridor's axis)."""
-    loop_retry_window_m: float = 2.5
+    loop_retry_window_m: float = 0.0
     """a candidate whose correlative search matched nothing (score gate) is searched again over +- this window,
     counting only rivals that are peaks of their own (:func:`slam2d.graph.lidar_loops.wide_correlative`), one more
     verification stage; every later gate and the pair confirmation still apply, and such a loop is always
     re-verified on static structure. ACES's return to its start (guess 1.7 m off): closed at 2.5 m, not reliably
     at 2.0 (a best alignment near the window's edge is rejected). Retrying ambiguity failures too let a warehouse
-    seed accept loops slid 2.3 m along an aisle (m; 0: off)."""
+    seed accept loops slid 2.3 m along an aisle. Off by default: at 2.5 m (with ``local_map_keyframes=4``) aces
+    0.0475 -> 0.0365 m, intel 0.0151, fr079 0.0418, mit-csail 0.0310, 0 false warehouse loops of 10 over 15 seeds,
+    but the extra stage of every unmatched candidate doubled mit-csail's CPU p99 per scan (55 -> 102 ms on a loaded
+    machine, main measured alongside), past the 33 ms of a 30 Hz lidar (m; 0: off)."""
+    loop_retry_step_cells: int = 4
+    """coarse translation step of that wider search, in ``correlative.resolution_m`` cells."""
+    loop_retry_stride: int = 3
+    """that wider search matches every this many points of the scan (its ICP refinement all of them)."""
     loop_wide_window_m: float = 0.0
     """a loop that passed every gate is searched again over +- this window (coarse only) and rejected when another
     alignment there scores ``loop_wide_max_ambiguity`` of the best: identical aisles farther apart than the

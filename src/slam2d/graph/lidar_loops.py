@@ -61,7 +61,7 @@ def verify_loop(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig, *
     old keyframe's frame, searched around ``guess`` = T_old_new (3,). ``wide``: the second search of a candidate
     the first found nothing for (:func:`wide_correlative`)."""
     cc = wide_correlative(cfg) if wide else cfg.correlative
-    cm = correlative_match(pts[::3] if wide else pts, target, guess, cc)  # wide: 4x the poses, a third the points
+    cm = correlative_match(pts[::cfg.loop_retry_stride] if wide else pts, target, guess, cc)
     base = LoopCheck(cm.transform, np.zeros((3, 3)), False, "", cm.score, cm.ambiguity)
     if cm.score < cfg.loop_min_score:
         return base.rejected("score")
@@ -100,7 +100,8 @@ def wide_correlative(cfg: LidarSLAMConfig) -> CorrelativeConfig:
     drive can be farther off than the first window; the wider window then holds a corridor's axis, along which the
     scores stay high (plain ambiguity 0.92-0.98 on ACES's return) but fall off from the right match without a second
     peak, where a parallel identical aisle or a repeating rack is a peak of its own."""
-    return replace(cfg.correlative, window_xy_m=cfg.loop_retry_window_m, ambiguity_peaks=True)
+    return replace(cfg.correlative, window_xy_m=cfg.loop_retry_window_m, ambiguity_peaks=True,
+                   coarse_cells=cfg.loop_retry_step_cells)
 
 
 def confirmed_mask(clouds: list[Array], radius_m: float, max_normal_angle_rad: float,
