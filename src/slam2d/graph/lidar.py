@@ -13,8 +13,8 @@ Per step (one scan):
    least ``loop_min_separation`` keyframes older) are queued as candidates; each scan runs at most
    ``loop_verify_per_scan`` verification stages, against a local map around the old keyframe: correlative matching
    over a window (:mod:`slam2d.frontend.correlative`; a high score and no competing alignment nearly as good:
-   parallel identical aisles, corridor axes; when it finds nothing, once more over a wider window where only rival
-   peaks count, one more stage), ICP refinement (fitness, residual and chi-square gates); a loop in a
+   parallel identical aisles, corridor axes; with ``loop_retry_window_m`` set, a search that matched nothing runs
+   again over that wider window, where only rival peaks count: one more stage), ICP refinement; a loop in a
    self-similar place (ambiguity above ``loop_static_ambiguity``) is verified again on static structure only, the
    points no other keyframe contradicts (:mod:`slam2d.graph.lidar_loops`: along an aisle a moving forklift can be
    all that breaks the tie; two more stages); a verified loop is accepted once a second one agrees with it; its

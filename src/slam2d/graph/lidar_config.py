@@ -102,7 +102,10 @@ class LidarSLAMConfig:
     seed accept loops slid 2.3 m along an aisle. Off by default: at 2.5 m (with ``local_map_keyframes=4``) aces
     0.0475 -> 0.0365 m, intel 0.0151, fr079 0.0418, mit-csail 0.0310, 0 false warehouse loops of 10 over 15 seeds,
     but the extra stage of every unmatched candidate doubled mit-csail's CPU p99 per scan (55 -> 102 ms on a loaded
-    machine, main measured alongside), past the 33 ms of a 30 Hz lidar (m; 0: off)."""
+    machine, main measured alongside), past the 33 ms of a 30 Hz lidar: its slowest 1 % of scans ran 2.3 wide
+    searches each (candidates finished at their due scan). A cheaper search (6-cell steps, every 4th point: 96 ms)
+    or ``loop_queue=24`` (92 ms) did not fix it; searching only the nearest candidate wider did (52 ms) but left
+    aces's return open (0.0462 m) (m; 0: off)."""
     loop_retry_step_cells: int = 4
     """coarse translation step of that wider search, in ``correlative.resolution_m`` cells."""
     loop_retry_stride: int = 3
@@ -193,7 +196,8 @@ class LidarSLAMConfig:
         if self.loop_confirmations not in (0, 1):
             raise ValueError(f"LidarSLAMConfig.loop_confirmations must be 0 or 1 (got {self.loop_confirmations})")
         for n in ("local_map_keyframes", "loop_every", "loop_candidates", "loop_min_separation",
-                  "loop_pair_keyframes", "loop_verify_per_scan", "loop_queue"):
+                  "loop_pair_keyframes", "loop_verify_per_scan", "loop_queue", "loop_retry_step_cells",
+                  "loop_retry_stride"):
             if getattr(self, n) < 1:
                 raise ValueError(f"LidarSLAMConfig.{n} must be >= 1 (got {getattr(self, n)})")
         if self.layers is not None and self.loop_closure:
