@@ -88,3 +88,86 @@ def test_confirmed_mask_keeps_what_two_clouds_saw_on_one_surface() -> None:
     # a surface no other cloud looked at is kept
     far = np.stack([np.full(5, 9.0), np.linspace(0, 0.4, 5)], -1)
     assert confirmed_mask([np.vstack([wall, far]), wall], 0.1, 1.0, 0.6)[21:26].all()
+
+
+
+def _segments(posts: bool) -> Array:
+    """Walls (S,4) [x0, y0, x1, y1] of a corridor 2.4 m wide along x. ``posts=False``: closed by an end wall at
+    x = -3, with door recesses here and there (what pins where along the corridor one is); ``posts=True``:
+    open, a 0.3 m post on each wall every 1.5 m (a repeating rack: every 1.5 m looks the same)."""
+    if posts:
+        seg = [[-20, -1.2, 20, -1.2], [-20, 1.2, 20, 1.2]]
+        seg += [[px, s * 1.2, px, s * 0.9] for px in np.arange(-15.0, 15.0, 1.5) for s in (-1.0, 1.0)]
+    else:  # door recesses (0.4 m deep) at irregular places on both walls
+        seg, doors = [[-3, -1.2, -3, 1.2]], {1.2: [-2.2, -0.6, 1.9, 6.0], -1.2: [-1.5, 0.3, 3.1]}
+        for y, xs in doors.items():
+            d = 0.4 * np.sign(y)
+            edges = [-3.0] + [e for x in xs for e in (x, x + 0.8)] + [20.0]
+            seg += [[a, y, b, y] for a, b in zip(edges[::2], edges[1::2], strict=True)]
+            seg += [q for x in xs for q in ([x, y, x, y + d], [x, y + d, x + 0.8, y + d], [x + 0.8, y + d, x + 0.8, y])]
+    return np.asarray(seg, dtype=np.float64)
+
+
+def _scan(rng: np.random.Generator, seg: Array, pose: Array, max_range: float = 8.0) -> Array:
+    """A 361-beam, 180-degree scan at ``pose`` (points in its frame, 5 mm range noise): the nearest wall per beam."""
+    a = pose[2] + np.linspace(-np.pi / 2, np.pi / 2, 361)
+    d = np.stack([np.cos(a), np.sin(a)], -1)[:, None]  # (B,1,2)
+    p0, e = seg[None, :, :2], (seg[:, 2:] - seg[:, :2])[None]
+    w = p0 - pose[:2]
+    den = d[..., 0] * e[..., 1] - d[..., 1] * e[..., 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (w[..., 0] * e[..., 1] - w[..., 1] * e[..., 0]) / den
+        u = (w[..., 0] * d[..., 1] - w[..., 1] * d[..., 0]) / den
+    t = np.where((t > 0) & (u >= 0) & (u <= 1), t, np.inf).min(axis=1)
+    ok = t < max_range
+    r = t[ok] + rng.normal(0, 0.005, ok.sum())
+    return np.stack([r * np.cos(a[ok] - pose[2]), r * np.sin(a[ok] - pose[2])], -1)
+
+
+def _return(rng: np.random.Generator, posts: bool) -> tuple[Array, Array, Array, Array]:
+    """A loop candidate on coming back after a drift of 1.7 m along the corridor: the old keyframe at the origin
+    facing -x (its map: every wall within 12 m, as many views would have drawn it), the new scan 1 m ahead, the guess
+    1.7 m off along the axis. Returns scan, map (in the old keyframe's frame), guess, truth (T_old_new)."""
+    seg = _segments(posts)
+    truth = np.array([-1.0, 0.1, np.pi + 0.05])  # facing the end wall, 2 m away
+    old = np.array([0.0, 0.0, np.pi])
+    walls = np.vstack([a + np.linspace(0.0, 1.0, int(np.hypot(*(b - a)) / 0.02) + 1)[:, None] * (b - a)
+                       for a, b in zip(seg[:, :2], seg[:, 2:], strict=True)])  # every wall, 2 cm apart
+    walls = walls[np.hypot(walls[:, 0], walls[:, 1]) < 12.0]
+    target = se2.inverse_transform_points(old, walls + rng.normal(0, 0.005, walls.shape))
+    truth = se2.between(old, truth)
+    scan = _scan(rng, seg, se2.compose(old, truth))
+    return scan, target, se2.compose(truth, np.array([1.7, 0.0, 0.0])), truth
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_return_beyond_the_window_is_found_by_the_wide_search_in_a_corridor_pinned_by_its_end(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    cfg = LidarSLAMConfig(loop_retry_window_m=2.5)
+    pts, target, guess, truth = _return(rng, posts=False)
+    first = verify_loop(pts, target, guess, cfg)  # +-1 m: the right alignment is outside, nothing matches
+    assert not first.ok and first.reason == "score"  # what makes the back end search wider
+    wide = verify_loop(pts, target, guess, cfg, wide=True)
+    assert wide.ok, wide.reason
+    assert wide.ambiguity < cfg.loop_max_ambiguity
+    e = se2.local(truth, wide.transform)
+    assert np.hypot(e[0], e[1]) < 0.03 and abs(e[2]) < 0.01
+    # every far alignment counted (the old rule) leaves it ambiguous: the axis keeps the scores high
+    from dataclasses import replace
+
+    from slam2d.frontend.correlative import correlative_match
+    from slam2d.graph.lidar_loops import wide_correlative
+
+    plain = correlative_match(pts[::3], target, guess, replace(wide_correlative(cfg), ambiguity_peaks=False))
+    assert plain.ambiguity > cfg.loop_max_ambiguity
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_wide_search_rejects_a_corridor_of_repeating_posts(seed: int) -> None:
+    """Posts every 1.5 m: the alignments 1.5 m either side are peaks of their own and score as well."""
+    rng = np.random.default_rng(seed)
+    cfg = LidarSLAMConfig(loop_retry_window_m=2.5)
+    pts, target, guess, _ = _return(rng, posts=True)
+    wide = verify_loop(pts, target, guess, cfg, wide=True)
+    assert not wide.ok and wide.reason in ("ambiguity", "edge")
+    assert wide.reason != "ambiguity" or wide.ambiguity > cfg.loop_max_ambiguity

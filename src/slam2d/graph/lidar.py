@@ -13,7 +13,8 @@ Per step (one scan):
    least ``loop_min_separation`` keyframes older) are queued as candidates; each scan runs at most
    ``loop_verify_per_scan`` verification stages, against a local map around the old keyframe: correlative matching
    over a window (:mod:`slam2d.frontend.correlative`; a high score and no competing alignment nearly as good:
-   parallel identical aisles, corridor axes), ICP refinement (fitness, residual and chi-square gates); a loop in a
+   parallel identical aisles, corridor axes; with ``loop_retry_window_m`` set, a search that matched nothing runs
+   again over that wider window, where only rival peaks count: one more stage), ICP refinement; a loop in a
    self-similar place (ambiguity above ``loop_static_ambiguity``) is verified again on static structure only, the
    points no other keyframe contradicts (:mod:`slam2d.graph.lidar_loops`: along an aisle a moving forklift can be
    all that breaks the tie; two more stages); a verified loop is accepted once a second one agrees with it; its
@@ -265,12 +266,8 @@ class LidarSLAM(EstimatorLifecycle):
     def _place(self, index: int, pose: Array) -> None:
         """A non-keyframe pose: stored relative to the newest keyframe."""
         self._pose = pose
-        if self.graph is None:
-            self._owner.append(-1)
-            self._rel.append(pose.copy())
-        else:
-            self._owner.append(len(self._kf_step) - 1)
-            self._rel.append(se2.between(self.graph.poses[-1], pose))
+        self._owner.append(-1 if self.graph is None else len(self._kf_step) - 1)
+        self._rel.append(pose.copy() if self.graph is None else se2.between(self.graph.poses[-1], pose))
 
     def _add_keyframe(self, index: int, pose: Array, pts: Array, scan: Scan | None, z: Array | None,
                       cov: Array) -> None:
@@ -446,8 +443,11 @@ class LidarSLAM(EstimatorLifecycle):
         cfg = self.config
         m, pose, pts = cfg.loop_map_keyframes, poses[k], self._kf_points[k]
         guess = se2.between(poses[c], pose)
-        chk = verify_loop(pts, self._points_in(poses, c - m, c + m + 1, poses[c]), guess, cfg)
-        if cfg.loop_static_radius_m > 0 and chk.ok and chk.ambiguity > cfg.loop_static_ambiguity:
+        chk = verify_loop(pts, target := self._points_in(poses, c - m, c + m + 1, poses[c]), guess, cfg)
+        if wide := cfg.loop_retry_window_m > 0 and chk.reason == "score":  # nothing matched: search wider
+            yield
+            chk = verify_loop(pts, target, guess, cfg, wide=True)
+        if cfg.loop_static_radius_m > 0 and chk.ok and (wide or chk.ambiguity > cfg.loop_static_ambiguity):
             # a self-similar place: verify again on what two keyframes saw on the same surface (a moving object
             # may be all that breaks the tie): the old keyframe's local map, the new scan against the keyframes
             # just before it
@@ -458,7 +458,7 @@ class LidarSLAM(EstimatorLifecycle):
             static_pts, static_old = pts[confirmed_mask(new, r, a, s)[:len(pts)]], np.vstack(old)
             static_old = static_old[confirmed_mask(old, r, a, s)]
             yield
-            chk = verify_loop(static_pts, static_old, guess, cfg)
+            chk = verify_loop(static_pts, static_old, guess, cfg, wide=wide)
         return chk
 
     def close_loop_now(self, z: Array) -> bool:

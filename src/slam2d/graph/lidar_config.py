@@ -35,7 +35,9 @@ class LidarSLAMConfig:
     keyframe_angle_rad: float = 0.25
     """tracked rotation since the last keyframe that makes a new keyframe (rad)."""
     local_map_keyframes: int = 6
-    """newest keyframes whose points form the tracking target."""
+    """newest keyframes whose points form the tracking target. With ``loop_retry_window_m=2.5``, 4 gave aces 0.0365
+    m (0.0380 at 6; at 3, 5, 10 with an earlier retry rule 0.0383, 0.0383, 0.0394: no trend), mit-csail 0.0310,
+    fr079 0.0418, intel 0.0151."""
     max_range_m: float = 25.0
     """beams longer than this are not matched (far points are sparse and noisy) (m)."""
     min_range_m: float = 0.05
@@ -91,6 +93,23 @@ class LidarSLAMConfig:
     loop_max_ambiguity: float = 0.9
     """a loop is rejected when a competing alignment outside the ambiguity radius scores this fraction of the
     best (identical aisles, a corridor's axis)."""
+    loop_retry_window_m: float = 0.0
+    """a candidate whose correlative search matched nothing (score gate) is searched again over +- this window,
+    counting only rivals that are peaks of their own (:func:`slam2d.graph.lidar_loops.wide_correlative`), one more
+    verification stage; every later gate and the pair confirmation still apply, and such a loop is always
+    re-verified on static structure. ACES's return to its start (guess 1.7 m off): closed at 2.5 m, not reliably
+    at 2.0 (a best alignment near the window's edge is rejected). Retrying ambiguity failures too let a warehouse
+    seed accept loops slid 2.3 m along an aisle. Off by default: at 2.5 m (with ``local_map_keyframes=4``) aces
+    0.0475 -> 0.0365 m, intel 0.0151, fr079 0.0418, mit-csail 0.0310, 0 false warehouse loops of 10 over 15 seeds,
+    but the extra stage of every unmatched candidate doubled mit-csail's CPU p99 per scan (55 -> 102 ms on a loaded
+    machine, main measured alongside), past the 33 ms of a 30 Hz lidar: its slowest 1 % of scans ran 2.3 wide
+    searches each (candidates finished at their due scan). A cheaper search (6-cell steps, every 4th point: 96 ms)
+    or ``loop_queue=24`` (92 ms) did not fix it; searching only the nearest candidate wider did (52 ms) but left
+    aces's return open (0.0462 m) (m; 0: off)."""
+    loop_retry_step_cells: int = 4
+    """coarse translation step of that wider search, in ``correlative.resolution_m`` cells."""
+    loop_retry_stride: int = 3
+    """that wider search matches every this many points of the scan (its ICP refinement all of them)."""
     loop_wide_window_m: float = 0.0
     """a loop that passed every gate is searched again over +- this window (coarse only) and rejected when another
     alignment there scores ``loop_wide_max_ambiguity`` of the best: identical aisles farther apart than the
@@ -177,7 +196,8 @@ class LidarSLAMConfig:
         if self.loop_confirmations not in (0, 1):
             raise ValueError(f"LidarSLAMConfig.loop_confirmations must be 0 or 1 (got {self.loop_confirmations})")
         for n in ("local_map_keyframes", "loop_every", "loop_candidates", "loop_min_separation",
-                  "loop_pair_keyframes", "loop_verify_per_scan", "loop_queue"):
+                  "loop_pair_keyframes", "loop_verify_per_scan", "loop_queue", "loop_retry_step_cells",
+                  "loop_retry_stride"):
             if getattr(self, n) < 1:
                 raise ValueError(f"LidarSLAMConfig.{n} must be >= 1 (got {getattr(self, n)})")
         if self.layers is not None and self.loop_closure:
@@ -188,7 +208,7 @@ class LidarSLAMConfig:
         if (self.surveyed_markers or self.map_unsurveyed_markers) and self.layers is None:
             raise ValueError("LidarSLAMConfig.surveyed_markers and map_unsurveyed_markers are used by the lifelong "
                              "mode only (set layers)")
-        check_nonnegative(self, "loop_static_radius_m", "track_rematch_points")
+        check_nonnegative(self, "loop_static_radius_m", "track_rematch_points", "loop_retry_window_m")
         check_positive(self, "track_rematch_rmse_m")
         if self.loop_map_keyframes < 0:
             raise ValueError(f"LidarSLAMConfig.loop_map_keyframes must be >= 0 (got {self.loop_map_keyframes})")

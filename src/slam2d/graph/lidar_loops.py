@@ -23,12 +23,12 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from slam2d.frontend.correlative import correlative_match
+from slam2d.frontend.correlative import CorrelativeConfig, correlative_match
 from slam2d.frontend.icp import ICPTarget, estimate_normals, icp, prepare_target
 from slam2d.geometry import se2
 from slam2d.graph.lidar_config import LidarSLAMConfig
 
-__all__ = ["LoopCheck", "confirmed_mask", "loops_agree", "verify_loop"]
+__all__ = ["LoopCheck", "confirmed_mask", "loops_agree", "verify_loop", "wide_correlative"]
 
 Array = NDArray[np.float64]
 
@@ -56,13 +56,17 @@ class LoopCheck:
         return replace(self, ok=False, reason=reason)
 
 
-def verify_loop(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig) -> LoopCheck:
+def verify_loop(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig, *, wide: bool = False) -> LoopCheck:
     """Scan-only gates of a loop candidate: the scan ``pts`` (N,2) in its own frame against ``target`` (M,2) in the
-    old keyframe's frame, searched around ``guess`` = T_old_new (3,)."""
-    cm = correlative_match(pts, target, guess, cfg.correlative)
+    old keyframe's frame, searched around ``guess`` = T_old_new (3,). ``wide``: the second search of a candidate
+    the first found nothing for (:func:`wide_correlative`)."""
+    cc = wide_correlative(cfg) if wide else cfg.correlative
+    cm = correlative_match(pts[::cfg.loop_retry_stride] if wide else pts, target, guess, cc)
     base = LoopCheck(cm.transform, np.zeros((3, 3)), False, "", cm.score, cm.ambiguity)
     if cm.score < cfg.loop_min_score:
         return base.rejected("score")
+    if wide and np.max(np.abs(cm.transform[:2] - guess[:2])) > cc.window_xy_m - cc.coarse_cells * cc.resolution_m:
+        return base.rejected("edge")  # the scores still rise at the window's edge: the peak may lie beyond it
     if cm.ambiguity > cfg.loop_max_ambiguity:
         return base.rejected("ambiguity")
     prep = prepare_target(target, cfg.loop_icp)
@@ -88,6 +92,16 @@ def verify_loop(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig) -
     if cfg.loop_wide_window_m > 0 and not unique_in_wide_window(pts, target, res.transform, cfg):
         return out.rejected("wide")
     return replace(out, ok=True)
+
+
+def wide_correlative(cfg: LidarSLAMConfig) -> CorrelativeConfig:
+    """The correlative search of a loop candidate's second try: +- ``loop_retry_window_m``, and only rivals that are
+    peaks of their own count toward the ambiguity (``CorrelativeConfig.ambiguity_peaks``). A return after a long
+    drive can be farther off than the first window; the wider window then holds a corridor's axis, along which the
+    scores stay high (plain ambiguity 0.92-0.98 on ACES's return) but fall off from the right match without a second
+    peak, where a parallel identical aisle or a repeating rack is a peak of its own."""
+    return replace(cfg.correlative, window_xy_m=cfg.loop_retry_window_m, ambiguity_peaks=True,
+                   coarse_cells=cfg.loop_retry_step_cells)
 
 
 def confirmed_mask(clouds: list[Array], radius_m: float, max_normal_angle_rad: float,
