@@ -242,9 +242,8 @@ def summarise(rows: list[dict[str, Any]], markers: bool) -> dict[str, Any]:
 
 def print_table(table: list[dict[str, Any]]) -> None:
     cols = ["flight", "markers", "starts", "success", "success_rate", "wrong", "wrong_in_map", "undecided",
-            "decide_s_median",
-            "decide_s_max", "error_m_max", "error_m_median", "map_error_m_median", "map_error_deg_median",
-            "cpu_s_per_start"]
+            "decide_s_median", "decide_s_max", "error_m_max", "error_m_median", "map_error_m_median",
+            "map_error_deg_median", "cpu_s_per_start"]
     print("  ".join(f"{c:>20s}" for c in cols))
     for row in table:
         print("  ".join(f"{row[c]:>20.3f}" if isinstance(row[c], float) else f"{row[c]!s:>20s}" for c in cols))

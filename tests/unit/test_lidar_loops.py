@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
+from slam2d.frontend.correlative import correlative_match
 from slam2d.geometry import se2
 from slam2d.graph.lidar_config import LidarSLAMConfig
-from slam2d.graph.lidar_loops import confirmed_mask, verify_loop
+from slam2d.graph.lidar_loops import confirmed_mask, verify_loop, wide_correlative
+from slam2d.models.lidar import cast_rays
 
 Array = np.ndarray
 
@@ -90,7 +94,6 @@ def test_confirmed_mask_keeps_what_two_clouds_saw_on_one_surface() -> None:
     assert confirmed_mask([np.vstack([wall, far]), wall], 0.1, 1.0, 0.6)[21:26].all()
 
 
-
 def _segments(posts: bool) -> Array:
     """Walls (S,4) [x0, y0, x1, y1] of a corridor 2.4 m wide along x. ``posts=False``: closed by an end wall at
     x = -3, with door recesses here and there (what pins where along the corridor one is); ``posts=True``:
@@ -109,19 +112,12 @@ def _segments(posts: bool) -> Array:
 
 
 def _scan(rng: np.random.Generator, seg: Array, pose: Array, max_range: float = 8.0) -> Array:
-    """A 361-beam, 180-degree scan at ``pose`` (points in its frame, 5 mm range noise): the nearest wall per beam."""
-    a = pose[2] + np.linspace(-np.pi / 2, np.pi / 2, 361)
-    d = np.stack([np.cos(a), np.sin(a)], -1)[:, None]  # (B,1,2)
-    p0, e = seg[None, :, :2], (seg[:, 2:] - seg[:, :2])[None]
-    w = p0 - pose[:2]
-    den = d[..., 0] * e[..., 1] - d[..., 1] * e[..., 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (w[..., 0] * e[..., 1] - w[..., 1] * e[..., 0]) / den
-        u = (w[..., 0] * d[..., 1] - w[..., 1] * d[..., 0]) / den
-    t = np.where((t > 0) & (u >= 0) & (u <= 1), t, np.inf).min(axis=1)
+    """A 361-beam, 180-degree scan at ``pose`` (points in its frame, 5 mm range noise), beams that hit only."""
+    a = np.linspace(-np.pi / 2, np.pi / 2, 361)
+    t = cast_rays(pose, a, seg, max_range)
     ok = t < max_range
     r = t[ok] + rng.normal(0, 0.005, ok.sum())
-    return np.stack([r * np.cos(a[ok] - pose[2]), r * np.sin(a[ok] - pose[2])], -1)
+    return np.stack([r * np.cos(a[ok]), r * np.sin(a[ok])], -1)
 
 
 def _return(rng: np.random.Generator, posts: bool) -> tuple[Array, Array, Array, Array]:
@@ -153,11 +149,6 @@ def test_a_return_beyond_the_window_is_found_by_the_wide_search_in_a_corridor_pi
     e = se2.local(truth, wide.transform)
     assert np.hypot(e[0], e[1]) < 0.03 and abs(e[2]) < 0.01
     # every far alignment counted (the old rule) leaves it ambiguous: the axis keeps the scores high
-    from dataclasses import replace
-
-    from slam2d.frontend.correlative import correlative_match
-    from slam2d.graph.lidar_loops import wide_correlative
-
     plain = correlative_match(pts[::3], target, guess, replace(wide_correlative(cfg), ambiguity_peaks=False))
     assert plain.ambiguity > cfg.loop_max_ambiguity
 

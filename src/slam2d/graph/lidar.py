@@ -444,7 +444,8 @@ class LidarSLAM(EstimatorLifecycle):
         m, pose, pts = cfg.loop_map_keyframes, poses[k], self._kf_points[k]
         guess = se2.between(poses[c], pose)
         chk = verify_loop(pts, target := self._points_in(poses, c - m, c + m + 1, poses[c]), guess, cfg)
-        if wide := cfg.loop_retry_window_m > 0 and chk.reason == "score":  # nothing matched: search wider
+        wide = cfg.loop_retry_window_m > 0 and chk.reason == "score"  # nothing matched: search wider
+        if wide:
             yield
             chk = verify_loop(pts, target, guess, cfg, wide=True)
         if cfg.loop_static_radius_m > 0 and chk.ok and (wide or chk.ambiguity > cfg.loop_static_ambiguity):
