@@ -2,18 +2,21 @@
 
 from __future__ import annotations
 
+from collections.abc import Generator
 from dataclasses import replace
+from typing import TypeVar
 
 import numpy as np
 import pytest
 
-from slam2d.frontend.correlative import correlative_match
+from slam2d.frontend.correlative import correlative_match, correlative_stages, run_stages
 from slam2d.geometry import se2
 from slam2d.graph.lidar_config import LidarSLAMConfig
-from slam2d.graph.lidar_loops import confirmed_mask, verify_loop, wide_correlative
+from slam2d.graph.lidar_loops import at_window_edge, confirmed_mask, verify_loop, verify_loop_stages, wide_correlative
 from slam2d.models.lidar import cast_rays
 
 Array = np.ndarray
+T = TypeVar("T")
 
 
 def _aisle(rng: np.random.Generator, x0: float, x1: float) -> Array:
@@ -142,7 +145,8 @@ def test_a_return_beyond_the_window_is_found_by_the_wide_search_in_a_corridor_pi
     cfg = LidarSLAMConfig(loop_retry_window_m=2.5)
     pts, target, guess, truth = _return(rng, posts=False)
     first = verify_loop(pts, target, guess, cfg)  # +-1 m: the right alignment is outside, nothing matches
-    assert not first.ok and first.reason == "score"  # what makes the back end search wider
+    assert not first.ok and first.reason == "score"  # what makes the back end search wider ...
+    assert 0 < first.score and at_window_edge(first.transform, guess, cfg.correlative)  # ... with the best at the edge
     wide = verify_loop(pts, target, guess, cfg, wide=True)
     assert wide.ok, wide.reason
     assert wide.ambiguity < cfg.loop_max_ambiguity
@@ -162,3 +166,40 @@ def test_the_wide_search_rejects_a_corridor_of_repeating_posts(seed: int) -> Non
     wide = verify_loop(pts, target, guess, cfg, wide=True)
     assert not wide.ok and wide.reason in ("ambiguity", "edge")
     assert wide.reason != "ambiguity" or wide.ambiguity > cfg.loop_max_ambiguity
+
+
+def _stages_run(gen: Generator[None, None, T]) -> tuple[int, T]:
+    """Drive a staged computation: (how many times it paused, its value)."""
+    pauses = 0
+    while True:
+        try:
+            next(gen)
+        except StopIteration as stop:
+            return pauses, stop.value  # type: ignore[no-any-return]
+        pauses += 1
+
+
+@pytest.mark.parametrize("stages", [1, 2, 3, 7])
+def test_a_staged_correlative_search_pauses_stages_minus_one_times_and_equals_the_search_at_once(stages: int) -> None:
+    rng = np.random.default_rng(stages)
+    cfg = LidarSLAMConfig(loop_retry_window_m=2.5)
+    pts, target, guess, _ = _return(rng, posts=False)
+    cc = wide_correlative(cfg)
+    pauses, staged = _stages_run(correlative_stages(pts, target, guess, cc, stages=stages))
+    once = correlative_match(pts, target, guess, cc)
+    assert pauses == stages - 1
+    assert np.array_equal(staged.transform, once.transform)
+    assert (staged.score, staged.ambiguity, staged.evaluated) == (once.score, once.ambiguity, once.evaluated)
+    assert run_stages(correlative_stages(pts, target, guess, cc, stages=stages)).score == once.score
+
+
+def test_a_staged_loop_check_pauses_before_its_icp_only_when_the_search_passed() -> None:
+    rng = np.random.default_rng(0)
+    cfg = LidarSLAMConfig(loop_retry_window_m=2.5, loop_retry_stages=3)
+    pts, target, guess, truth = _return(rng, posts=False)
+    pauses, first = _stages_run(verify_loop_stages(pts, target, guess, cfg))
+    assert pauses == 0 and first.reason == "score"
+    pauses, wide = _stages_run(verify_loop_stages(pts, target, guess, cfg, wide=True))
+    assert pauses == cfg.loop_retry_stages and wide.ok  # a pause after each of 3 search stages, then the ICP
+    at_once = verify_loop(pts, target, guess, cfg, wide=True)
+    assert np.array_equal(at_once.transform, wide.transform)

@@ -16,7 +16,9 @@ best fine score. Every level is one array operation over all candidate poses: sh
 
 from __future__ import annotations
 
+from collections.abc import Generator
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -25,6 +27,7 @@ from scipy import ndimage
 from slam2d.config import check_positive
 
 Array = NDArray[np.float64]
+T = TypeVar("T")
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -161,12 +164,21 @@ def _reachable(src: Array, g: Array, lo: Array, shape: tuple[int, int],
 def correlative_match(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
                       config: CorrelativeConfig | None = None) -> CorrelativeMatch:
     """Best ``T_target_source`` within the window around ``initial`` (3,). Shapes: source (N,2), target (M,2)."""
+    return run_stages(correlative_stages(source, target, initial, config))
+
+
+def correlative_stages(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
+                       config: CorrelativeConfig | None = None, *,
+                       stages: int = 1) -> Generator[None, None, CorrelativeMatch]:
+    """:func:`correlative_match` in ``stages`` steps that pause in between (the coarse scores, the bulk of the
+    work, split by rotation; the same result as at once): a caller with a per-cycle budget runs one at a time."""
     cfg = config or CorrelativeConfig()
     src = np.asarray(source, dtype=np.float64).reshape(-1, 2)
     tgt = np.asarray(target, dtype=np.float64).reshape(-1, 2)
     g = np.asarray(initial, dtype=np.float64)
     if len(src) == 0 or len(tgt) == 0:
         return CorrelativeMatch(g.copy(), 0.0, 1.0, 0)
+    yield from ()  # a generator even when it returns before its first pause
     res, c = cfg.resolution_m, cfg.coarse_cells
     margin = 3 * cfg.sigma_m + c * res
     lo = tgt.min(axis=0) - margin
@@ -182,7 +194,12 @@ def correlative_match(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
     koff = np.arange(-nk, nk + 1) * c  # coarse offsets from the guess, in fine cells
     kx = g[0] + koff * res
     ky = g[1] + koff * res
-    sc = _scores(grids.coarse, grids, src, th, g[:2], koff, koff, res)  # (A,Y,X)
+    parts = []
+    for i, a in enumerate(np.array_split(np.arange(len(th)), max(min(stages, len(th)), 1))):
+        if i:
+            yield
+        parts.append(_scores(grids.coarse, grids, src, th[a], g[:2], koff, koff, res))
+    sc = np.concatenate(parts, axis=0)  # (A,Y,X)
     order = np.argsort(sc, axis=None, kind="stable")[::-1]
     best_t, best_s = g.copy(), -1.0
     fa = int(np.ceil(0.5 * cfg.coarse_theta_step_rad / cfg.fine_theta_step_rad))
@@ -210,3 +227,12 @@ def correlative_match(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
     amb = float(sc[far].max()) / top if far.any() and top > 0 else 0.0
     best_t[2] = float(np.arctan2(np.sin(best_t[2]), np.cos(best_t[2])))
     return CorrelativeMatch(best_t, max(best_s, 0.0), amb, int(evaluated))
+
+
+def run_stages(stages: Generator[None, None, T]) -> T:
+    """Run staged work (a generator that pauses between stages) to its end and return its value."""
+    while True:
+        try:
+            next(stages)
+        except StopIteration as stop:
+            return stop.value  # type: ignore[no-any-return]

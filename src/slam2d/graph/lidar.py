@@ -13,12 +13,12 @@ Per step (one scan):
    least ``loop_min_separation`` keyframes older) are queued as candidates; each scan runs at most
    ``loop_verify_per_scan`` verification stages, against a local map around the old keyframe: correlative matching
    over a window (:mod:`slam2d.frontend.correlative`; a high score and no competing alignment nearly as good:
-   parallel identical aisles, corridor axes; with ``loop_retry_window_m`` set, a search that matched nothing runs
-   again over that wider window, where only rival peaks count: one more stage), ICP refinement; a loop in a
-   self-similar place (ambiguity above ``loop_static_ambiguity``) is verified again on static structure only, the
-   points no other keyframe contradicts (:mod:`slam2d.graph.lidar_loops`: along an aisle a moving forklift can be
-   all that breaks the tie; two more stages); a verified loop is accepted once a second one agrees with it; its
-   decision enters the graph a fixed ``loop_queue`` scans after queueing (results independent of the schedule);
+   parallel identical aisles, corridor axes; with ``loop_retry_window_m`` set, a search that matched nothing with
+   its best try at the window's edge runs again over that window (in stages), where only rival peaks count),
+   ICP refinement; a loop in a self-similar place (ambiguity above ``loop_static_ambiguity``) is verified again
+   on static structure only, the points no other keyframe contradicts (:mod:`slam2d.graph.lidar_loops`: a moving
+   forklift can be all that breaks an aisle's tie); a verified loop is accepted once a second one agrees with it;
+   its decision enters the graph ``loop_queue`` scans after queueing, or when verified if later;
 4. the keyframe and its edges enter :class:`~slam2d.graph.incremental.IncrementalPoseGraph`: a local solve when a
    loop enters, then ``loop_full_iterations`` whole-graph Gauss-Newton iterations, one per scan, one every
    ``graph.full_every`` keyframes, the whole graph to convergence in ``finalize`` (bounded work per scan).
@@ -51,12 +51,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, LoopEvent
+from slam2d.frontend.correlative import run_stages
 from slam2d.frontend.icp import ICPTarget, prepare_target
 from slam2d.geometry import se2
 from slam2d.graph.incremental import IncrementalPoseGraph
 from slam2d.graph.lidar_config import LidarSLAMConfig, LifelongLidarConfig
 from slam2d.graph.lidar_lifelong import LifelongMarkers, MarkerSurvey
-from slam2d.graph.lidar_loops import LoopCheck, confirmed_mask, loops_agree, verify_loop
+from slam2d.graph.lidar_loops import LoopCheck, at_window_edge, loops_agree, static_stages, verify_loop_stages
 from slam2d.graph.lidar_markers import KeyframeMarkers, MarkerPoseGraph
 from slam2d.graph.lidar_tracking import good_fit, track_scan
 from slam2d.log import Scan, Step
@@ -103,8 +104,7 @@ class LidarSLAM(EstimatorLifecycle):
         self._rel = [self._pose.copy()]
         self._target: ICPTarget | None = None
         self._target_version = -1
-        self._target_poses = np.zeros((0, 3))  # the keyframe poses the target was built (or moved) for
-        self._target_span = (0, 0)  # ... and which keyframes they are
+        self._target_poses, self._target_span = np.zeros((0, 3)), (0, 0)  # the keyframes the target was made for
         self._version = 0  # bumped whenever keyframe estimates change
         self._traj_cache: tuple[int, Array] | None = None
         self._new_loops: tuple[LoopEvent, ...] = ()
@@ -298,7 +298,7 @@ class LidarSLAM(EstimatorLifecycle):
             while self._live and self._live[0] <= self.steps:
                 self._live.popleft()
             for c in cands:  # at most loop_queue in flight (queued, not yet due), however fast they are verified
-                if len(self._live) >= cfg.loop_queue:
+                if len(self._live) >= cfg.loop_queue or len(self._queue) >= cfg.loop_backlog:
                     self.loops_dropped += 1
                     continue
                 assert snap is not None
@@ -309,11 +309,11 @@ class LidarSLAM(EstimatorLifecycle):
     def _loop_work(self, verifications: int, *, flush: bool = False) -> None:
         """One scan's share of the loop work: a whole-graph Gauss-Newton iteration if a loop still owes some, at
         most ``verifications`` verification stages of queued candidates, and the decisions that are due entered
-        (``flush``: everything now). No scan pays for a whole search (a 30 Hz lidar leaves 33 ms per scan).
-        Schedule independence: a candidate is verified against the keyframe poses of the moment it was queued,
-        and its decision enters the graph exactly ``loop_queue`` scans after that moment (a candidate still
-        unverified then is finished at once), so the loops and the trajectory do not depend on how the stages
-        were spread over scans (a candidate is refused when ``loop_queue`` are in flight; counted)."""
+        (``flush``: everything now). No scan pays for more (a 30 Hz lidar leaves 33 ms per scan). A candidate is
+        verified against the keyframe poses of the moment it was queued, and its decision enters the graph
+        ``loop_queue`` scans after that moment, or after its last stage if that is later, so the results depend on
+        the stage budget but never on how long a stage took (a candidate is refused when ``loop_queue`` were
+        queued in the last ``loop_queue`` scans or ``loop_backlog`` wait; counted)."""
         assert self.graph is not None
         moved = False
         if self._full_pending:
@@ -321,9 +321,8 @@ class LidarSLAM(EstimatorLifecycle):
             # converged (the step changed the cost too little): the rest of the owed iterations are not needed
             self._full_pending = 0 if summary.termination != "max iterations" else self._full_pending - 1
             moved = True
-        done = 0  # verification stages run in this scan (a self-similar candidate takes three: graph/lidar_loops.py)
-        while (self._active or self._queue) and (
-                done < verifications or flush or (self._active or self._queue[0])[3] <= self.steps):
+        done = 0  # verification stages run in this scan
+        while (self._active or self._queue) and (done < verifications or flush):
             if self._active is None:
                 c, k, snap, due = self._queue.popleft()
                 self._active = (c, k, snap, due, self._check_stages(c, k, snap))
@@ -427,39 +426,27 @@ class LidarSLAM(EstimatorLifecycle):
 
     def _check_candidate(self, c: int, k: int, poses: Array) -> LoopCheck:
         """Every gate of a loop candidate, with the values it saw, all stages at once (see ``_check_stages``)."""
-        stages = self._check_stages(c, k, poses)
-        while True:
-            try:
-                next(stages)
-            except StopIteration as stop:
-                return stop.value  # type: ignore[no-any-return]
+        return run_stages(self._check_stages(c, k, poses))
 
     def _check_stages(self, c: int, k: int, poses: Array) -> Generator[None, None, LoopCheck]:
-        """Every gate of a loop candidate (:mod:`slam2d.graph.lidar_loops`), as stages that pause in between (one
-        per scan: the static re-check of a self-similar place is two more); returns the check. ``poses`` are the
-        keyframe poses when the candidate was queued: the guess, the old local map and the new keyframe's
-        neighbours all come from them, so a candidate verified scans later is decided exactly as it would have
-        been at once (the graph moves in between; with the current poses, acceptance depended on the schedule)."""
+        """Every gate of a loop candidate (:mod:`slam2d.graph.lidar_loops`), as stages that pause in between (the
+        search, its ICP refinement; the wide retry's ``loop_retry_stages``; a static re-check's masks, search and
+        refinement); returns the check. ``poses`` are the keyframe poses when the candidate was queued: the guess,
+        the old local map and the new keyframe's neighbours all come from them, so a candidate verified scans later
+        is decided exactly as it would have been at once (the graph moves in between)."""
         cfg = self.config
         m, pose, pts = cfg.loop_map_keyframes, poses[k], self._kf_points[k]
         guess = se2.between(poses[c], pose)
-        chk = verify_loop(pts, target := self._points_in(poses, c - m, c + m + 1, poses[c]), guess, cfg)
-        wide = cfg.loop_retry_window_m > 0 and chk.reason == "score"  # nothing matched: search wider
-        if wide:
+        target = self._points_in(poses, c - m, c + m + 1, poses[c])
+        chk = yield from verify_loop_stages(pts, target, guess, cfg)
+        if cfg.loop_retry_window_m > 0 and chk.reason == "score" and chk.score > 0 \
+                and at_window_edge(chk.transform, guess, cfg.correlative):
+            # nothing matched and the best try lay at the window's edge: the match may be farther off
             yield
-            chk = verify_loop(pts, target, guess, cfg, wide=True)
-        if cfg.loop_static_radius_m > 0 and chk.ok and (wide or chk.ambiguity > cfg.loop_static_ambiguity):
-            # a self-similar place: verify again on what two keyframes saw on the same surface (a moving object
-            # may be all that breaks the tie): the old keyframe's local map, the new scan against the keyframes
-            # just before it
-            yield
-            r, a, s = cfg.loop_static_radius_m, cfg.loop_static_normal_rad, cfg.loop_static_seen_m
-            old = [self._points_in(poses, j, j + 1, poses[c]) for j in range(max(c - m, 0), min(c + m + 1, k))]
-            new = [pts] + [self._points_in(poses, j, j + 1, pose) for j in range(max(k - m, 0), k)]
-            static_pts, static_old = pts[confirmed_mask(new, r, a, s)[:len(pts)]], np.vstack(old)
-            static_old = static_old[confirmed_mask(old, r, a, s)]
-            yield
-            chk = verify_loop(static_pts, static_old, guess, cfg, wide=wide)
+            chk = yield from verify_loop_stages(pts, target, guess, cfg, wide=True)
+            return (yield from static_stages(self._kf_points, poses, c, k, chk, cfg, wide=True)) if chk.ok else chk
+        if chk.ok and chk.ambiguity > cfg.loop_static_ambiguity:
+            chk = yield from static_stages(self._kf_points, poses, c, k, chk, cfg)
         return chk
 
     def close_loop_now(self, z: Array) -> bool:

@@ -35,9 +35,10 @@ class LidarSLAMConfig:
     keyframe_angle_rad: float = 0.25
     """tracked rotation since the last keyframe that makes a new keyframe (rad)."""
     local_map_keyframes: int = 6
-    """newest keyframes whose points form the tracking target. With ``loop_retry_window_m=2.5``, 4 gave aces 0.0365
-    m (0.0380 at 6; at 3, 5, 10 with an earlier retry rule 0.0383, 0.0383, 0.0394: no trend), mit-csail 0.0310,
-    fr079 0.0418, intel 0.0151."""
+    """newest keyframes whose points form the tracking target. 4 instead gave aces 0.0372 m (0.0387 at 6),
+    mit-csail 0.0286 (0.0318), intel 0.0163 (0.0154), fr079 0.0420 (0.0401), but on a 150-step warehouse drive
+    (tests/unit/test_lidar_markers.py) drifted 0.65 m along an aisle against 0.26 m at 6 (5: 0.78 m): not
+    changed on the strength of aces alone."""
     max_range_m: float = 25.0
     """beams longer than this are not matched (far points are sparse and noisy) (m)."""
     min_range_m: float = 0.05
@@ -93,23 +94,22 @@ class LidarSLAMConfig:
     loop_max_ambiguity: float = 0.9
     """a loop is rejected when a competing alignment outside the ambiguity radius scores this fraction of the
     best (identical aisles, a corridor's axis)."""
-    loop_retry_window_m: float = 0.0
-    """a candidate whose correlative search matched nothing (score gate) is searched again over +- this window,
-    counting only rivals that are peaks of their own (:func:`slam2d.graph.lidar_loops.wide_correlative`), one more
-    verification stage; every later gate and the pair confirmation still apply, and such a loop is always
-    re-verified on static structure. ACES's return to its start (guess 1.7 m off): closed at 2.5 m, not reliably
-    at 2.0 (a best alignment near the window's edge is rejected). Retrying ambiguity failures too let a warehouse
-    seed accept loops slid 2.3 m along an aisle. Off by default: at 2.5 m (with ``local_map_keyframes=4``) aces
-    0.0475 -> 0.0365 m, intel 0.0151, fr079 0.0418, mit-csail 0.0310, 0 false warehouse loops of 10 over 15 seeds,
-    but the extra stage of every unmatched candidate doubled mit-csail's CPU p99 per scan (55 -> 102 ms on a loaded
-    machine, main measured alongside), past the 33 ms of a 30 Hz lidar: its slowest 1 % of scans ran 2.3 wide
-    searches each (candidates finished at their due scan). A cheaper search (6-cell steps, every 4th point: 96 ms)
-    or ``loop_queue=24`` (92 ms) did not fix it; searching only the nearest candidate wider did (52 ms) but left
-    aces's return open (0.0462 m) (m; 0: off)."""
+    loop_retry_window_m: float = 2.5
+    """a candidate whose correlative search matched nothing (score gate), its best try lying at the window's edge
+    (the scores still rising there), is searched again over +- this window, counting only rivals that are peaks of
+    their own (:func:`slam2d.graph.lidar_loops.wide_correlative`), in ``loop_retry_stages`` more stages; every
+    later gate and the pair confirmation still apply, and such a loop is always re-verified on static structure.
+    ACES's return to its start (guess 1.7 m off): closed at 2.5 m, not reliably at 2.0 (a best alignment near the
+    window's edge is rejected); aces 0.0475 -> 0.0372 m. Retrying ambiguity failures too let a warehouse seed
+    accept loops slid 2.3 m along an aisle. Retrying every score failure (not only edge ones) ran 364 wide searches
+    on mit-csail instead of 182 (m; 0: off)."""
     loop_retry_step_cells: int = 4
     """coarse translation step of that wider search, in ``correlative.resolution_m`` cells."""
     loop_retry_stride: int = 3
     """that wider search matches every this many points of the scan (its ICP refinement all of them)."""
+    loop_retry_stages: int = 3
+    """that wider search runs as this many verification stages (its coarse scores split by rotation), so that it
+    costs a scan no more than the first search does."""
     loop_wide_window_m: float = 0.0
     """a loop that passed every gate is searched again over +- this window (coarse only) and rejected when another
     alignment there scores ``loop_wide_max_ambiguity`` of the best: identical aisles farther apart than the
@@ -148,10 +148,15 @@ class LidarSLAMConfig:
     following scans, one stage at a time (the correlative + ICP check; a self-similar place's static re-check is
     two more: its masks, its match), which bounds the work of every scan."""
     loop_queue: int = 16
-    """the delay, in scans, from queueing a candidate to its decision entering the graph: fixed, so that results
-    do not depend on when within that delay the candidate was verified. Also at most this many candidates are in
-    flight (queued in the last ``loop_queue`` scans); more are refused unverified (counted), a rule that does not
-    depend on how fast they are verified either."""
+    """the delay, in scans, from queueing a candidate to its decision entering the graph (later when its stages
+    are not done by then: no scan runs more than ``loop_verify_per_scan`` of them), so the results do not depend
+    on how long a stage took. Also at most this many candidates are queued in any ``loop_queue`` scans; more are
+    refused unverified (counted). (Before, a candidate unverified at its due scan was finished at once: several
+    searches in one scan, mit-csail's CPU p99 per scan 55 -> 102 ms with the wide retry on; refusing it instead
+    lost loops, mit-csail 0.031 -> 0.247 m.)"""
+    loop_backlog: int = 128
+    """at most this many candidates wait for verification; more are refused unverified (counted): bounds how late
+    a decision can enter (fr079 and mit-csail reach it with the wide retry)."""
     graph: IncrementalConfig = field(default_factory=lambda: IncrementalConfig(
         window=30, loop_neighbourhood=3, iterations=3, full_every=200, loop_kernel="cauchy"))
     """incremental pose-graph settings (in keyframes). Loop edges carry a Cauchy kernel (3 sigma): with plain least
@@ -197,7 +202,7 @@ class LidarSLAMConfig:
             raise ValueError(f"LidarSLAMConfig.loop_confirmations must be 0 or 1 (got {self.loop_confirmations})")
         for n in ("local_map_keyframes", "loop_every", "loop_candidates", "loop_min_separation",
                   "loop_pair_keyframes", "loop_verify_per_scan", "loop_queue", "loop_retry_step_cells",
-                  "loop_retry_stride"):
+                  "loop_retry_stride", "loop_retry_stages", "loop_backlog"):
             if getattr(self, n) < 1:
                 raise ValueError(f"LidarSLAMConfig.{n} must be >= 1 (got {getattr(self, n)})")
         if self.layers is not None and self.loop_closure:

@@ -17,18 +17,20 @@ weakest direction; it does not separate those loops from right ones (ACES has ri
 
 from __future__ import annotations
 
+from collections.abc import Generator
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from slam2d.frontend.correlative import CorrelativeConfig, correlative_match
+from slam2d.frontend.correlative import CorrelativeConfig, correlative_match, correlative_stages, run_stages
 from slam2d.frontend.icp import ICPTarget, estimate_normals, icp, prepare_target
 from slam2d.geometry import se2
 from slam2d.graph.lidar_config import LidarSLAMConfig
 
-__all__ = ["LoopCheck", "confirmed_mask", "loops_agree", "verify_loop", "wide_correlative"]
+__all__ = ["LoopCheck", "at_window_edge", "confirmed_mask", "loops_agree", "static_stages",
+           "verify_loop", "verify_loop_stages", "wide_correlative"]
 
 Array = NDArray[np.float64]
 
@@ -59,16 +61,28 @@ class LoopCheck:
 def verify_loop(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig, *, wide: bool = False) -> LoopCheck:
     """Scan-only gates of a loop candidate: the scan ``pts`` (N,2) in its own frame against ``target`` (M,2) in the
     old keyframe's frame, searched around ``guess`` = T_old_new (3,). ``wide``: the second search of a candidate
-    the first found nothing for (:func:`wide_correlative`)."""
+    the first found nothing for (:func:`wide_correlative`). All at once; :func:`verify_loop_stages` in two steps."""
+    return run_stages(verify_loop_stages(pts, target, guess, cfg, wide=wide))
+
+
+def verify_loop_stages(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig, *,
+                       wide: bool = False) -> Generator[None, None, LoopCheck]:
+    """:func:`verify_loop` as two stages that pause in between: the correlative search, then (if it passed) the
+    ICP refinement and its gates. The back end runs one stage per scan, so no scan pays for both."""
     cc = wide_correlative(cfg) if wide else cfg.correlative
-    cm = correlative_match(pts[::cfg.loop_retry_stride] if wide else pts, target, guess, cc)
+    if wide:  # the wide search's coarse scores in loop_retry_stages stages
+        cm = yield from correlative_stages(pts[::cfg.loop_retry_stride], target, guess, cc,
+                                           stages=cfg.loop_retry_stages)
+    else:
+        cm = correlative_match(pts, target, guess, cc)
     base = LoopCheck(cm.transform, np.zeros((3, 3)), False, "", cm.score, cm.ambiguity)
     if cm.score < cfg.loop_min_score:
         return base.rejected("score")
-    if wide and np.max(np.abs(cm.transform[:2] - guess[:2])) > cc.window_xy_m - cc.coarse_cells * cc.resolution_m:
+    if wide and at_window_edge(cm.transform, guess, cc):
         return base.rejected("edge")  # the scores still rise at the window's edge: the peak may lie beyond it
     if cm.ambiguity > cfg.loop_max_ambiguity:
         return base.rejected("ambiguity")
+    yield
     prep = prepare_target(target, cfg.loop_icp)
     res = icp(pts, prep, initial=cm.transform, config=cfg.loop_icp)
     sigma = float(np.sqrt(np.linalg.eigvalsh(res.covariance[:2, :2])[-1])) \
@@ -92,6 +106,36 @@ def verify_loop(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig, *
     if cfg.loop_wide_window_m > 0 and not unique_in_wide_window(pts, target, res.transform, cfg):
         return out.rejected("wide")
     return replace(out, ok=True)
+
+
+def static_stages(kf_points: list[Array], poses: Array, c: int, k: int, chk: LoopCheck, cfg: LidarSLAMConfig, *,
+                  wide: bool = False) -> Generator[None, None, LoopCheck]:
+    """Loop (old keyframe ``c``, new keyframe ``k``) in a self-similar place, verified again on what two keyframes
+    saw on the same surface (:func:`confirmed_mask`; a moving object may be all that breaks the tie): the old
+    keyframe's local map, the new scan against the keyframes just before it. ``kf_points``: each keyframe's scan
+    points in its frame, ``poses`` the keyframe poses, ``chk`` the check so far (returned as it is when
+    ``loop_static_radius_m`` is 0). Stages: the masks, the search, its refinement."""
+    if cfg.loop_static_radius_m <= 0:
+        return chk
+    yield
+    m, r, a, s = cfg.loop_map_keyframes, cfg.loop_static_radius_m, cfg.loop_static_normal_rad, cfg.loop_static_seen_m
+
+    def seen(j: int, frame: Array) -> Array:
+        return se2.inverse_transform_points(frame, se2.transform_points(poses[j], kf_points[j]))
+
+    old = [seen(j, poses[c]) for j in range(max(c - m, 0), min(c + m + 1, k))]
+    pts = kf_points[k]
+    new = [pts] + [seen(j, poses[k]) for j in range(max(k - m, 0), k)]
+    static_pts, static_old = pts[confirmed_mask(new, r, a, s)[:len(pts)]], np.vstack(old)
+    static_old = static_old[confirmed_mask(old, r, a, s)]
+    yield
+    return (yield from verify_loop_stages(static_pts, static_old, se2.between(poses[c], poses[k]), cfg, wide=wide))
+
+
+def at_window_edge(t: Array, guess: Array, cc: CorrelativeConfig) -> bool:
+    """Is the correlative match ``t`` within one coarse step of the edge of its search window around ``guess``?
+    Then the scores were still rising there, and the best alignment may lie beyond the window."""
+    return bool(np.max(np.abs(t[:2] - guess[:2])) > cc.window_xy_m - cc.coarse_cells * cc.resolution_m)
 
 
 def wide_correlative(cfg: LidarSLAMConfig) -> CorrelativeConfig:
