@@ -118,9 +118,15 @@ def test_no_false_loops_on_warehouse_seed_2() -> None:
     assert rec["loops_false"] == 0
 
 
-def _count_stages(est: LidarSLAM, calls: list[int], finished: list[int]) -> None:
-    """Count the verification stages ``est`` runs: into ``calls[-1]`` (the caller appends one entry per scan) and
-    the candidates whose check finished into ``finished[0]``."""
+def test_loop_work_is_bounded_per_scan_and_finalize_verifies_what_is_left() -> None:
+    """Candidates are queued at keyframes and verified at most ``loop_verify_per_scan`` stages per scan (a
+    self-similar candidate takes three); with ``loop_queue`` candidates in flight a new one is refused (counted);
+    ``finalize`` verifies whatever still waits."""
+    log = simulate("room", seed=3, steps=300)
+    cfg = LidarSLAMConfig(loop_every=1, loop_candidates=4, loop_min_separation=10)
+    est = LidarSLAM(cfg)
+    calls: list[int] = []  # verification stages run per scan
+    finished = [0]
     stages = est._check_stages
 
     def counted(*a: Any) -> Generator[None, None, LoopCheck]:
@@ -135,39 +141,20 @@ def _count_stages(est: LidarSLAM, calls: list[int], finished: list[int]) -> None
             yield
 
     est._check_stages = counted  # type: ignore[method-assign]
-
-
-def test_loop_work_is_bounded_per_scan_and_finalize_verifies_what_is_left() -> None:
-    """Candidates are queued at keyframes and verified at most ``loop_verify_per_scan`` stages per scan, also when
-    a candidate is overdue (its decision then enters late); with ``loop_queue`` candidates queued within
-    ``loop_queue`` scans, or ``loop_backlog`` waiting, a new one is refused (counted); ``finalize`` verifies
-    whatever still waits."""
-    log = simulate("room", seed=3, steps=300)
-    cfg = LidarSLAMConfig(loop_every=1, loop_candidates=4, loop_min_separation=10, loop_queue=4)
-    est = LidarSLAM(cfg)
-    calls: list[int] = []  # verification stages run per scan
-    finished = [0]
-    _count_stages(est, calls, finished)
     est.reset(log.initial_pose, rng=np.random.default_rng(0))
-    waiting = overdue = 0
+    waiting = 0
     for i in range(1, log.num_steps + 1):
         calls.append(0)
         est.step(log.step(i))
         waiting = max(waiting, len(est._queue))
-        head = est._active or (est._queue[0] if est._queue else None)
-        overdue += head is not None and head[3] < est.steps  # the next candidate is past its due scan
     assert max(calls) == 1 and sum(calls) > finished[0] > 20 and waiting > 1  # more candidates than one scan verifies
-    assert overdue > 0  # ... so some were due before their turn, and still no scan ran more than one stage
     left = len(est._queue) + (est._active is not None)
     finished[0] = 0
     est.finalize()
     assert len(est._queue) == 0 and est._active is None and finished[0] == left
-    for small in (LidarSLAM(replace(cfg, loop_queue=2)), LidarSLAM(replace(cfg, loop_backlog=2))):
-        small.reset(log.initial_pose, rng=np.random.default_rng(0))
-        for i in range(1, log.num_steps + 1):
-            small.step(log.step(i))
-            assert len(small._queue) <= small.config.loop_backlog
-        assert small.loops_dropped > 0
+    small = LidarSLAM(replace(cfg, loop_queue=2))
+    run(small, log, rng=np.random.default_rng(0), progress=False)
+    assert small.loops_dropped > 0
 
 
 def test_a_queued_candidate_is_decided_the_same_whenever_it_is_verified() -> None:
@@ -198,27 +185,21 @@ def test_a_queued_candidate_is_decided_the_same_whenever_it_is_verified() -> Non
 
 
 def test_loops_do_not_depend_on_when_candidates_are_verified() -> None:
-    """All candidates verified in the scan that queued them, or two stages per scan: the same loops, the same
-    measurements, the same trajectory, as long as each is verified before its decision is due (decisions enter
-    the graph a fixed number of scans after queueing; checked here: no candidate waited past its due scan)."""
+    """All candidates verified in the scan that queued them, or one per scan: the same loops, the same
+    measurements, the same trajectory (decisions enter the graph a fixed number of scans after queueing)."""
     log = simulate("room", seed=3, steps=300)
     cfg = LidarSLAMConfig(loop_min_separation=10)
     runs = []
-    for per_scan in (cfg.loop_queue, 2):
+    for per_scan in (cfg.loop_queue, 1):
         est = LidarSLAM(replace(cfg, loop_verify_per_scan=per_scan))
-        est.reset(log.initial_pose, rng=np.random.default_rng(0))
-        for i in range(1, log.num_steps + 1):
-            est.step(log.step(i))
-            head = est._active or (est._queue[0] if est._queue else None)
-            assert head is None or head[3] >= est.steps  # nothing overdue
-        est.finalize()
+        res = run(est, log, rng=np.random.default_rng(0), progress=False)
         assert est.loops_dropped == 0
-        runs.append((est.trajectory(), est.loops_accepted, est._pool))
-    (at_once, n_once, pool_once), (spread, n_spread, pool_spread) = runs
+        runs.append((res, est.loops_accepted))
+    (at_once, n_once), (spread, n_spread) = runs
     assert n_once == n_spread > 10
-    key = [[(c, k, tuple(t), ok) for c, k, t, _, ok in p] for p in (pool_once, pool_spread)]
+    key = [[(lp.a, lp.b, lp.accepted, tuple(lp.T_a_b)) for lp in r.loops] for r in (at_once, spread)]
     assert key[0] == key[1]
-    assert np.array_equal(at_once, spread)
+    assert np.array_equal(at_once.trajectory, spread.trajectory)
 
 
 def test_correlative_grid_cropped_to_the_scans_reach_gives_the_whole_grids_results(

@@ -18,7 +18,7 @@ Per step (one scan):
    ICP refinement; a loop in a self-similar place (ambiguity above ``loop_static_ambiguity``) is verified again
    on static structure only, the points no other keyframe contradicts (:mod:`slam2d.graph.lidar_loops`: a moving
    forklift can be all that breaks an aisle's tie); a verified loop is accepted once a second one agrees with it;
-   its decision enters the graph ``loop_queue`` scans after queueing, or when verified if later;
+   its decision enters the graph a fixed ``loop_queue`` scans after queueing (results independent of the schedule);
 4. the keyframe and its edges enter :class:`~slam2d.graph.incremental.IncrementalPoseGraph`: a local solve when a
    loop enters, then ``loop_full_iterations`` whole-graph Gauss-Newton iterations, one per scan, one every
    ``graph.full_every`` keyframes, the whole graph to convergence in ``finalize`` (bounded work per scan).
@@ -298,7 +298,7 @@ class LidarSLAM(EstimatorLifecycle):
             while self._live and self._live[0] <= self.steps:
                 self._live.popleft()
             for c in cands:  # at most loop_queue in flight (queued, not yet due), however fast they are verified
-                if len(self._live) >= cfg.loop_queue or len(self._queue) >= cfg.loop_backlog:
+                if len(self._live) >= cfg.loop_queue:
                     self.loops_dropped += 1
                     continue
                 assert snap is not None
@@ -309,11 +309,11 @@ class LidarSLAM(EstimatorLifecycle):
     def _loop_work(self, verifications: int, *, flush: bool = False) -> None:
         """One scan's share of the loop work: a whole-graph Gauss-Newton iteration if a loop still owes some, at
         most ``verifications`` verification stages of queued candidates, and the decisions that are due entered
-        (``flush``: everything now). No scan pays for more (a 30 Hz lidar leaves 33 ms per scan). A candidate is
-        verified against the keyframe poses of the moment it was queued, and its decision enters the graph
-        ``loop_queue`` scans after that moment, or after its last stage if that is later, so the results depend on
-        the stage budget but never on how long a stage took (a candidate is refused when ``loop_queue`` were
-        queued in the last ``loop_queue`` scans or ``loop_backlog`` wait; counted)."""
+        (``flush``: everything now). No scan pays for a whole search (a 30 Hz lidar leaves 33 ms per scan).
+        Schedule independence: a candidate is verified against the keyframe poses of the moment it was queued,
+        and its decision enters the graph exactly ``loop_queue`` scans after that moment (a candidate still
+        unverified then is finished at once), so the loops and the trajectory do not depend on how the stages
+        were spread over scans (a candidate is refused when ``loop_queue`` are in flight; counted)."""
         assert self.graph is not None
         moved = False
         if self._full_pending:
@@ -322,7 +322,8 @@ class LidarSLAM(EstimatorLifecycle):
             self._full_pending = 0 if summary.termination != "max iterations" else self._full_pending - 1
             moved = True
         done = 0  # verification stages run in this scan
-        while (self._active or self._queue) and (done < verifications or flush):
+        while (self._active or self._queue) and (
+                done < verifications or flush or (self._active or self._queue[0])[3] <= self.steps):
             if self._active is None:
                 c, k, snap, due = self._queue.popleft()
                 self._active = (c, k, snap, due, self._check_stages(c, k, snap))
@@ -430,8 +431,8 @@ class LidarSLAM(EstimatorLifecycle):
 
     def _check_stages(self, c: int, k: int, poses: Array) -> Generator[None, None, LoopCheck]:
         """Every gate of a loop candidate (:mod:`slam2d.graph.lidar_loops`), as stages that pause in between (the
-        search, its ICP refinement; the wide retry's ``loop_retry_stages``; a static re-check's masks, search and
-        refinement); returns the check. ``poses`` are the keyframe poses when the candidate was queued: the guess,
+        search and its refinement; the wide retry's ``loop_retry_stages``; a static re-check's masks, then its
+        search); returns the check. ``poses`` are the keyframe poses when the candidate was queued: the guess,
         the old local map and the new keyframe's neighbours all come from them, so a candidate verified scans later
         is decided exactly as it would have been at once (the graph moves in between)."""
         cfg = self.config

@@ -94,15 +94,19 @@ class LidarSLAMConfig:
     loop_max_ambiguity: float = 0.9
     """a loop is rejected when a competing alignment outside the ambiguity radius scores this fraction of the
     best (identical aisles, a corridor's axis)."""
-    loop_retry_window_m: float = 2.5
+    loop_retry_window_m: float = 0.0
     """a candidate whose correlative search matched nothing (score gate), its best try lying at the window's edge
     (the scores still rising there), is searched again over +- this window, counting only rivals that are peaks of
     their own (:func:`slam2d.graph.lidar_loops.wide_correlative`), in ``loop_retry_stages`` more stages; every
     later gate and the pair confirmation still apply, and such a loop is always re-verified on static structure.
     ACES's return to its start (guess 1.7 m off): closed at 2.5 m, not reliably at 2.0 (a best alignment near the
-    window's edge is rejected); aces 0.0475 -> 0.0372 m. Retrying ambiguity failures too let a warehouse seed
-    accept loops slid 2.3 m along an aisle. Retrying every score failure (not only edge ones) ran 364 wide searches
-    on mit-csail instead of 182 (m; 0: off)."""
+    window's edge is rejected). Retrying ambiguity failures too let a warehouse seed accept loops slid 2.3 m along
+    an aisle; retrying every score failure, not only those at the edge, searched mit-csail twice as often (364
+    against 182 wide searches) for the same loops. Off by default: at 2.5 m, with ``local_map_keyframes=4``, aces
+    0.0475 -> 0.0365 m, mit-csail 0.0310, but candidates still unverified at their due scan are finished at once
+    (``loop_queue``), so the retries crowd into those scans: mit-csail's CPU p99 per scan 44 -> 67 ms on a loaded
+    machine. Making such scans wait instead broke mit-csail or intel's real-time factor (see ``loop_queue`` and
+    the report of issue 16) (m; 0: off)."""
     loop_retry_step_cells: int = 4
     """coarse translation step of that wider search, in ``correlative.resolution_m`` cells."""
     loop_retry_stride: int = 3
@@ -148,15 +152,11 @@ class LidarSLAMConfig:
     following scans, one stage at a time (the correlative + ICP check; a self-similar place's static re-check is
     two more: its masks, its match), which bounds the work of every scan."""
     loop_queue: int = 16
-    """the delay, in scans, from queueing a candidate to its decision entering the graph (later when its stages
-    are not done by then: no scan runs more than ``loop_verify_per_scan`` of them), so the results do not depend
-    on how long a stage took. Also at most this many candidates are queued in any ``loop_queue`` scans; more are
-    refused unverified (counted). (Before, a candidate unverified at its due scan was finished at once: several
-    searches in one scan, mit-csail's CPU p99 per scan 55 -> 102 ms with the wide retry on; refusing it instead
-    lost loops, mit-csail 0.031 -> 0.247 m.)"""
-    loop_backlog: int = 128
-    """at most this many candidates wait for verification; more are refused unverified (counted): bounds how late
-    a decision can enter (fr079 and mit-csail reach it with the wide retry)."""
+    """the delay, in scans, from queueing a candidate to its decision entering the graph: fixed, so that results
+    do not depend on when within that delay the candidate was verified. Also at most this many candidates are in
+    flight (queued in the last ``loop_queue`` scans); more are refused unverified (counted), a rule that does not
+    depend on how fast they are verified either. (Letting a candidate unverified at its due scan enter late
+    instead, with at most one stage per scan, lost mit-csail: 0.0309 -> 0.277 m with the wide retry off.)"""
     graph: IncrementalConfig = field(default_factory=lambda: IncrementalConfig(
         window=30, loop_neighbourhood=3, iterations=3, full_every=200, loop_kernel="cauchy"))
     """incremental pose-graph settings (in keyframes). Loop edges carry a Cauchy kernel (3 sigma): with plain least
@@ -202,7 +202,7 @@ class LidarSLAMConfig:
             raise ValueError(f"LidarSLAMConfig.loop_confirmations must be 0 or 1 (got {self.loop_confirmations})")
         for n in ("local_map_keyframes", "loop_every", "loop_candidates", "loop_min_separation",
                   "loop_pair_keyframes", "loop_verify_per_scan", "loop_queue", "loop_retry_step_cells",
-                  "loop_retry_stride", "loop_retry_stages", "loop_backlog"):
+                  "loop_retry_stride", "loop_retry_stages"):
             if getattr(self, n) < 1:
                 raise ValueError(f"LidarSLAMConfig.{n} must be >= 1 (got {getattr(self, n)})")
         if self.layers is not None and self.loop_closure:

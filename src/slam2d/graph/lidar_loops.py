@@ -67,8 +67,8 @@ def verify_loop(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig, *
 
 def verify_loop_stages(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig, *,
                        wide: bool = False) -> Generator[None, None, LoopCheck]:
-    """:func:`verify_loop` as two stages that pause in between: the correlative search, then (if it passed) the
-    ICP refinement and its gates. The back end runs one stage per scan, so no scan pays for both."""
+    """:func:`verify_loop` in stages that pause in between: the wide search's coarse scores split by rotation
+    into ``loop_retry_stages`` (the last one with the rest of the check); a first search is one stage."""
     cc = wide_correlative(cfg) if wide else cfg.correlative
     if wide:  # the wide search's coarse scores in loop_retry_stages stages
         cm = yield from correlative_stages(pts[::cfg.loop_retry_stride], target, guess, cc,
@@ -82,7 +82,6 @@ def verify_loop_stages(pts: Array, target: Array, guess: Array, cfg: LidarSLAMCo
         return base.rejected("edge")  # the scores still rise at the window's edge: the peak may lie beyond it
     if cm.ambiguity > cfg.loop_max_ambiguity:
         return base.rejected("ambiguity")
-    yield
     prep = prepare_target(target, cfg.loop_icp)
     res = icp(pts, prep, initial=cm.transform, config=cfg.loop_icp)
     sigma = float(np.sqrt(np.linalg.eigvalsh(res.covariance[:2, :2])[-1])) \
