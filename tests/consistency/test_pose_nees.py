@@ -30,6 +30,7 @@ STEPS = 200
 #: information x2, five times milder than OVERCONFIDENT) has 18-66 % inside (the test needs 90 %). FastSLAM 2.0 keeps
 #: 30: with 20 that mild variant passed on one set of three (loop, 93 % inside; 84 % and 52 % in the two 30-run sets)
 #: and the honest filter failed on one (room, 84 %).
+#: (regenerate: PYTHONPATH=src python benchmarks/nees_power.py band|overconfident|range-only)
 RUNS = {"ekf": 20, "graph": 20, "fastslam2": SEEDS}
 #: the shrunk-noise runs fail the same check (same runs, same band) by a wide margin on their first 40 steps.
 #: Measured, 40 steps on seeds 0-89, each back end and scenario: 0 % of steps inside the band and a mean NEES of 14.1

@@ -104,6 +104,7 @@ def _pose_nees(logs: list[Log], motion_scale: float, steps: int) -> np.ndarray:
 #: the overconfident filter fails over the first 40 steps of the same 30 runs by a wide margin. Measured, 30 runs x
 #: 40 steps on seeds 0-29, 30-59 and 60-89: 0 % of steps inside the band, mean NEES 26.9 or more (the check below
 #: needs < 50 % and > 10), while the honest filter on those prefixes has 97-100 % inside (mean 2.7-3.0)
+#: (regenerate: PYTHONPATH=src python benchmarks/nees_power.py band|overconfident|range-only)
 RO_SEEDS, RO_STEPS, RO_POWER_STEPS = 30, 150, 40
 
 
