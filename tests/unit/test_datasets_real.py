@@ -12,6 +12,7 @@ import pytest
 
 from slam2d.cli.main import main
 from slam2d.eval.gps import gps_ate
+from slam2d.eval.trajectory import ate
 from slam2d.geometry import se2
 from slam2d.geometry.angles import angle_diff
 from slam2d.io.datasets import load_dataset
@@ -85,7 +86,9 @@ def test_mrclam7_slam_without_ids_beats_dead_reckoning(robot: int):
     from slam2d.lab.runner import run_named
 
     log = load_mrclam(dataset_path("utias-mrclam-7"), robot)
-    dr = run_named("dead-reckoning", log=log, seed=0)[1]["ate_rmse_m"]
+    # dead reckoning is the odometry chain: its ATE equals run_named("dead-reckoning", ...)'s bit for bit (checked on
+    # all five robots) without the estimator's per-step covariance propagation (4-5 s a robot)
+    dr = ate(chain(log.odometry, log.initial_pose), log.true_poses).rmse_m
     for name, overrides in MRCLAM7_UNKNOWN.items():
         _, rec = run_named(name, log=log, seed=0, overrides=overrides)
         assert rec["ate_rmse_m"] < 0.7 * dr, (name, rec["ate_rmse_m"], dr)
