@@ -35,10 +35,10 @@ class LidarSLAMConfig:
     keyframe_angle_rad: float = 0.25
     """tracked rotation since the last keyframe that makes a new keyframe (rad)."""
     local_map_keyframes: int = 6
-    """newest keyframes whose points form the tracking target. 4 instead gave aces 0.0372 m (0.0387 at 6),
-    mit-csail 0.0286 (0.0318), intel 0.0163 (0.0154), fr079 0.0420 (0.0401), but on a 150-step warehouse drive
-    (tests/unit/test_lidar_markers.py) drifted 0.65 m along an aisle against 0.26 m at 6 (5: 0.78 m): not
-    changed on the strength of aces alone."""
+    """newest keyframes whose points form the tracking target. With the wide loop retry (``loop_retry_window_m``),
+    4 gives aces 0.0365 m (6: 0.038-0.039, measured with earlier versions of the retry); but on a 150-step
+    warehouse drive with floor markers (tests/unit/test_lidar_markers.py) 4 drifts 0.65 m along an aisle, 6 0.26 m
+    (5: 0.78 m), so 6 stays: not changed on the strength of aces alone."""
     max_range_m: float = 25.0
     """beams longer than this are not matched (far points are sparse and noisy) (m)."""
     min_range_m: float = 0.05
@@ -104,9 +104,11 @@ class LidarSLAMConfig:
     an aisle; retrying every score failure, not only those at the edge, searched mit-csail twice as often (364
     against 182 wide searches) for the same loops. Off by default: at 2.5 m, with ``local_map_keyframes=4``, aces
     0.0475 -> 0.0365 m, mit-csail 0.0310, but candidates still unverified at their due scan are finished at once
-    (``loop_queue``), so the retries crowd into those scans: mit-csail's CPU p99 per scan 44 -> 67 ms on a loaded
-    machine. Making such scans wait instead broke mit-csail or intel's real-time factor (see ``loop_queue`` and
-    the report of issue 16) (m; 0: off)."""
+    (``loop_queue``), so the retries crowd into those scans: mit-csail's CPU p99 per scan 46 -> 93 ms (both with
+    ``local_map_keyframes=4``, side by side on a loaded machine). Never finishing a candidate at once failed both
+    ways: letting it enter late (``loop_queue``) saturated verification with the retry on (128 waiting on fr079
+    and mit-csail, intel's real-time factor down by 28 %); giving up an overdue retry lost aces's return (0.0462
+    m) (m; 0: off)."""
     loop_retry_step_cells: int = 4
     """coarse translation step of that wider search, in ``correlative.resolution_m`` cells."""
     loop_retry_stride: int = 3
