@@ -184,16 +184,18 @@ def test_a_queued_candidate_is_decided_the_same_whenever_it_is_verified() -> Non
     assert np.array_equal(later.information, first.information) and later.score == first.score
 
 
-def test_loops_do_not_depend_on_when_candidates_are_verified() -> None:
-    """All candidates verified in the scan that queued them, or one per scan: the same loops, the same
-    measurements, the same trajectory (decisions enter the graph a fixed number of scans after queueing)."""
+@pytest.mark.parametrize("retry_m", [0.0, 2.5])
+def test_loops_do_not_depend_on_when_candidates_are_verified(retry_m: float) -> None:
+    """All candidates verified in the scan that queued them, or one stage per scan: the same loops, the same
+    measurements, the same trajectory (decisions enter the graph a fixed number of scans after queueing; a wide
+    retry is a candidate of its own, due ``loop_queue`` scans after the first search's decision would have been)."""
     log = simulate("room", seed=3, steps=300)
-    cfg = LidarSLAMConfig(loop_min_separation=10)
+    cfg = LidarSLAMConfig(loop_min_separation=10, loop_retry_window_m=retry_m)
     runs = []
     for per_scan in (cfg.loop_queue, 1):
         est = LidarSLAM(replace(cfg, loop_verify_per_scan=per_scan))
         res = run(est, log, rng=np.random.default_rng(0), progress=False)
-        assert est.loops_dropped == 0
+        assert est.loops_dropped == 0 and (est.loops_retried > 5) == (retry_m > 0)
         runs.append((res, est.loops_accepted))
     (at_once, n_once), (spread, n_spread) = runs
     assert n_once == n_spread > 10

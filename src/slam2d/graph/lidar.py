@@ -14,11 +14,12 @@ Per step (one scan):
    ``loop_verify_per_scan`` verification stages, against a local map around the old keyframe: correlative matching
    over a window (:mod:`slam2d.frontend.correlative`; a high score and no competing alignment nearly as good:
    parallel identical aisles, corridor axes; with ``loop_retry_window_m`` set, a search that matched nothing with
-   its best try at the window's edge runs again over that window (in stages), where only rival peaks count),
-   ICP refinement; a loop in a self-similar place (ambiguity above ``loop_static_ambiguity``) is verified again
-   on static structure only, the points no other keyframe contradicts (:mod:`slam2d.graph.lidar_loops`: a moving
-   forklift can be all that breaks an aisle's tie); a verified loop is accepted once a second one agrees with it;
-   its decision enters the graph a fixed ``loop_queue`` scans after queueing (results independent of the schedule);
+   its best try at the window's edge runs again over that window as a candidate of its own, where only rival
+   peaks count), ICP refinement; a loop in a self-similar place (ambiguity above ``loop_static_ambiguity``) is
+   verified again on static structure only, the points no other keyframe contradicts
+   (:mod:`slam2d.graph.lidar_loops`: a moving forklift can break an aisle's tie); a verified loop is accepted once
+   a second one agrees with it; its decision enters the graph a fixed ``loop_queue`` scans after queueing
+   (results independent of the schedule);
 4. the keyframe and its edges enter :class:`~slam2d.graph.incremental.IncrementalPoseGraph`: a local solve when a
    loop enters, then ``loop_full_iterations`` whole-graph Gauss-Newton iterations, one per scan, one every
    ``graph.full_every`` keyframes, the whole graph to convergence in ``finalize`` (bounded work per scan).
@@ -57,7 +58,7 @@ from slam2d.geometry import se2
 from slam2d.graph.incremental import IncrementalPoseGraph
 from slam2d.graph.lidar_config import LidarSLAMConfig, LifelongLidarConfig
 from slam2d.graph.lidar_lifelong import LifelongMarkers, MarkerSurvey
-from slam2d.graph.lidar_loops import LoopCheck, at_window_edge, loops_agree, static_stages, verify_loop_stages
+from slam2d.graph.lidar_loops import LoopCheck, enqueue, loops_agree, static_stages, verify_loop_stages, wants_retry
 from slam2d.graph.lidar_markers import KeyframeMarkers, MarkerPoseGraph
 from slam2d.graph.lidar_tracking import good_fit, track_scan
 from slam2d.log import Scan, Step
@@ -109,14 +110,15 @@ class LidarSLAM(EstimatorLifecycle):
         self._traj_cache: tuple[int, Array] | None = None
         self._new_loops: tuple[LoopEvent, ...] = ()
         # verified loops of the last ``loop_pair_keyframes`` keyframes: (old kf, new kf, T, information, accepted)
-        self._pool: list[tuple[int, int, Array, Array, bool]] = []
-        # loop candidates awaiting verification: (old kf, new kf, the keyframe poses when they were queued, the
-        # scan their decision enters the graph), and decisions awaiting that scan: (scan, events, loops to enter)
-        self._queue: deque[tuple[int, int, Array, int]] = deque()
+        self._pool: list[tuple[int, int, Array, Array, bool, Array]] = []  # ..., the poses it was verified at
+        # loop candidates awaiting verification: (old kf, new kf, the keyframe poses when they were queued, the scan
+        # their decision enters the graph, wide retry?), and decisions awaiting that scan: (scan, events, loops)
+        self._queue: deque[tuple[int, int, Array, int, bool]] = deque()
         self._active: tuple[int, int, Array, int, Generator[None, None, LoopCheck]] | None = None  # in verification
         self._decided: deque[tuple[int, list[LoopEvent], list[tuple[int, int, Array, Array]]]] = deque()
         self._full_pending = 0  # whole-graph Gauss-Newton iterations still owed after a loop
         self.loops_dropped = 0  # candidates refused because loop_queue were in flight
+        self.loops_retried = 0  # candidates searched again over loop_retry_window_m
         self._live: deque[int] = deque()  # when the candidates in flight are due
         self.tracking_failures = 0
         self.rematches = 0  # tracking matches replaced by a correlative re-match (graph/lidar_tracking.py)
@@ -303,7 +305,7 @@ class LidarSLAM(EstimatorLifecycle):
                     continue
                 assert snap is not None
                 self._live.append(self.steps + cfg.loop_queue)
-                self._queue.append((c, k, snap, self.steps + cfg.loop_queue))
+                enqueue(self._queue, (c, k, snap, self.steps + cfg.loop_queue, False))
 
     # ------------------------------------------------------------------ loop work, bounded per scan
     def _loop_work(self, verifications: int, *, flush: bool = False) -> None:
@@ -325,14 +327,20 @@ class LidarSLAM(EstimatorLifecycle):
         while (self._active or self._queue) and (
                 done < verifications or flush or (self._active or self._queue[0])[3] <= self.steps):
             if self._active is None:
-                c, k, snap, due = self._queue.popleft()
-                self._active = (c, k, snap, due, self._check_stages(c, k, snap))
+                if not flush and self._queue[0][3] - self.config.loop_queue > self.steps:
+                    break  # a wide retry waits until no candidate queued later can be due before it
+                c, k, snap, due, wide = self._queue.popleft()
+                self._active = (c, k, snap, due, self._check_stages(c, k, snap, wide))
             done += 1
             try:
                 next(self._active[4])
             except StopIteration as stop:
                 c, k, snap, due, _ = self._active
                 self._active, chk = None, stop.value
+                if chk.reason == "retry":  # a candidate of its own, due loop_queue scans later: no crowded due scan
+                    enqueue(self._queue, (c, k, snap, due + self.config.loop_queue, True))
+                    self.loops_retried += 1
+                    continue
                 self._decided.append((due, *self._decide(c, k, chk.transform, chk.information, chk.ok, snap)))
         events: list[LoopEvent] = []
         while self._decided and (flush or self._decided[0][0] <= self.steps):
@@ -356,7 +364,9 @@ class LidarSLAM(EstimatorLifecycle):
         Returns the decisions and the loops (old kf, new kf, T, information) to enter the graph."""
         cfg = self.config
         self._pool = [q for q in self._pool if k - q[1] <= cfg.loop_pair_keyframes]
-        partners = [q for q in self._pool if loops_agree(q[:3], (c, k, t_ck), snap, cfg)] if ok else []
+        # a retry is decided after loops of later keyframes: each pair is judged on the later one's poses
+        partners = [q for q in self._pool if (loops_agree(q[:3], (c, k, t_ck), snap, cfg) if q[1] <= k else
+                                              loops_agree((c, k, t_ck), q[:3], q[5], cfg))] if ok else []
         accept = ok and (cfg.loop_confirmations == 0 or bool(partners))
         events = [LoopEvent(self._kf_step[c], self._kf_step[k], accept, t_ck)]
         loops = [(c, k, t_ck, info)] if accept else []
@@ -364,10 +374,10 @@ class LidarSLAM(EstimatorLifecycle):
             if not q[4]:  # a waiting loop confirmed by this one enters the graph too
                 loops.append((q[0], q[1], q[2], q[3]))
                 events.append(LoopEvent(self._kf_step[q[0]], self._kf_step[q[1]], True, q[2]))
-                self._pool[self._pool.index(q)] = (*q[:4], True)
+                self._pool[self._pool.index(q)] = (*q[:4], True, q[5])
                 accept = True
         if ok:
-            self._pool.append((c, k, t_ck, info, accept))
+            self._pool.append((c, k, t_ck, info, accept, snap))
         return events, loops
 
     # ------------------------------------------------------------------ maps
@@ -429,7 +439,8 @@ class LidarSLAM(EstimatorLifecycle):
         """Every gate of a loop candidate, with the values it saw, all stages at once (see ``_check_stages``)."""
         return run_stages(self._check_stages(c, k, poses))
 
-    def _check_stages(self, c: int, k: int, poses: Array) -> Generator[None, None, LoopCheck]:
+    def _check_stages(self, c: int, k: int, poses: Array,
+                      wide: bool | None = None) -> Generator[None, None, LoopCheck]:
         """Every gate of a loop candidate (:mod:`slam2d.graph.lidar_loops`), as stages that pause in between (the
         search and its refinement; the wide retry's ``loop_retry_stages``; a static re-check's masks, then its
         search); returns the check. ``poses`` are the keyframe poses when the candidate was queued: the guess,
@@ -439,11 +450,11 @@ class LidarSLAM(EstimatorLifecycle):
         m, pose, pts = cfg.loop_map_keyframes, poses[k], self._kf_points[k]
         guess = se2.between(poses[c], pose)
         target = self._points_in(poses, c - m, c + m + 1, poses[c])
-        chk = yield from verify_loop_stages(pts, target, guess, cfg)
-        if cfg.loop_retry_window_m > 0 and chk.reason == "score" and chk.score > 0 \
-                and at_window_edge(chk.transform, guess, cfg.correlative):
-            # nothing matched and the best try lay at the window's edge: the match may be farther off
-            yield
+        chk = LoopCheck(guess, np.zeros((3, 3)), False, "retry", 0.0, 1.0) if wide else \
+            (yield from verify_loop_stages(pts, target, guess, cfg))
+        if wide or wants_retry(chk, guess, cfg):  # nothing matched, the best try at the window's edge
+            if wide is False:
+                return chk.rejected("retry")  # the scheduler queues the wider search as a candidate of its own
             chk = yield from verify_loop_stages(pts, target, guess, cfg, wide=True)
             return (yield from static_stages(self._kf_points, poses, c, k, chk, cfg, wide=True)) if chk.ok else chk
         if chk.ok and chk.ambiguity > cfg.loop_static_ambiguity:

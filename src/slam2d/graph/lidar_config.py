@@ -97,18 +97,19 @@ class LidarSLAMConfig:
     loop_retry_window_m: float = 0.0
     """a candidate whose correlative search matched nothing (score gate), its best try lying at the window's edge
     (the scores still rising there), is searched again over +- this window, counting only rivals that are peaks of
-    their own (:func:`slam2d.graph.lidar_loops.wide_correlative`), in ``loop_retry_stages`` more stages; every
-    later gate and the pair confirmation still apply, and such a loop is always re-verified on static structure.
+    their own (:func:`slam2d.graph.lidar_loops.wide_correlative`), as a candidate of its own (due ``loop_queue``
+    scans after the first search's decision, in ``loop_retry_stages`` stages); every later gate and the pair
+    confirmation still apply, and such a loop is always re-verified on static structure.
     ACES's return to its start (guess 1.7 m off): closed at 2.5 m, not reliably at 2.0 (a best alignment near the
     window's edge is rejected). Retrying ambiguity failures too let a warehouse seed accept loops slid 2.3 m along
     an aisle; retrying every score failure, not only those at the edge, searched mit-csail twice as often (364
     against 182 wide searches) for the same loops. Off by default: at 2.5 m, with ``local_map_keyframes=4``, aces
     0.0475 -> 0.0365 m, mit-csail 0.0310, but candidates still unverified at their due scan are finished at once
-    (``loop_queue``), so the retries crowd into those scans: mit-csail's CPU p99 per scan 46 -> 93 ms (both with
-    ``local_map_keyframes=4``, side by side on a loaded machine). Never finishing a candidate at once failed both
-    ways: letting it enter late (``loop_queue``) saturated verification with the retry on (128 waiting on fr079
-    and mit-csail, intel's real-time factor down by 28 %); giving up an overdue retry lost aces's return (0.0462
-    m) (m; 0: off)."""
+    (``loop_queue``), so the retries crowd into those scans: mit-csail's CPU p99 per scan 50 -> 79 ms (both with
+    ``local_map_keyframes=4``, side by side on a loaded machine; 46 -> 93 ms when the retry ran inside the first
+    search's due window). Never finishing a candidate at once failed both ways: letting it enter late
+    (``loop_queue``) saturated verification with the retry on (128 waiting on fr079 and mit-csail, intel's
+    real-time factor down by 28 %); giving up an overdue retry lost aces's return (0.0462 m) (m; 0: off)."""
     loop_retry_step_cells: int = 4
     """coarse translation step of that wider search, in ``correlative.resolution_m`` cells."""
     loop_retry_stride: int = 3

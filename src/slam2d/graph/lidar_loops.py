@@ -17,6 +17,7 @@ weakest direction; it does not separate those loops from right ones (ACES has ri
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Generator
 from dataclasses import dataclass, replace
 
@@ -29,8 +30,18 @@ from slam2d.frontend.icp import ICPTarget, estimate_normals, icp, prepare_target
 from slam2d.geometry import se2
 from slam2d.graph.lidar_config import LidarSLAMConfig
 
-__all__ = ["LoopCheck", "at_window_edge", "confirmed_mask", "loops_agree", "static_stages",
-           "verify_loop", "verify_loop_stages", "wide_correlative"]
+__all__ = [
+    "LoopCheck",
+    "at_window_edge",
+    "confirmed_mask",
+    "enqueue",
+    "loops_agree",
+    "static_stages",
+    "verify_loop",
+    "verify_loop_stages",
+    "wants_retry",
+    "wide_correlative",
+]
 
 Array = NDArray[np.float64]
 
@@ -129,6 +140,21 @@ def static_stages(kf_points: list[Array], poses: Array, c: int, k: int, chk: Loo
     static_old = static_old[confirmed_mask(old, r, a, s)]
     yield
     return (yield from verify_loop_stages(static_pts, static_old, se2.between(poses[c], poses[k]), cfg, wide=wide))
+
+
+def enqueue(queue: deque[tuple[int, int, Array, int, bool]], entry: tuple[int, int, Array, int, bool]) -> None:
+    """Insert a loop candidate (old kf, new kf, poses, due scan, wide retry?) into ``queue`` in the order (due scan,
+    first search before wide retry, arrival): the order decisions are made in, which no stage timing may move."""
+    at = next((i for i, e in enumerate(queue) if (e[3], e[4]) > (entry[3], entry[4])), len(queue))
+    queue.insert(at, entry)
+
+
+def wants_retry(chk: LoopCheck, guess: Array, cfg: LidarSLAMConfig) -> bool:
+    """Should a candidate's first check ``chk`` be followed by the wide search (``loop_retry_window_m``)? When it
+    matched nothing but its best try lay at the window's edge: the scores were still rising, the match may lie
+    beyond (a return after a long drive)."""
+    return cfg.loop_retry_window_m > 0 and chk.reason == "score" and chk.score > 0 and at_window_edge(
+        chk.transform, guess, cfg.correlative)
 
 
 def at_window_edge(t: Array, guess: Array, cc: CorrelativeConfig) -> bool:
