@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from slam2d.eval.consistency import monte_carlo_consistency, pose_error
+from slam2d.eval.consistency import monte_carlo_consistency, online_pose_nees
 from slam2d.filters.range_only_ekf import RangeOnlyEKF
 from slam2d.lab.registry import make_config, make_estimator
 from slam2d.log import Log
@@ -37,32 +37,18 @@ MILD: dict[str, dict[str, Any]] = {"ekf": {"motion_noise_scale": 0.5}, "graph": 
 
 def pose_nees(name: str, logs: list[Log], seeds: list[int], overrides: dict[str, Any], steps: int) -> np.ndarray:
     """(runs, steps) pose NEES of back end ``name``; run of seed s uses estimator stream 1000 + s, as the test."""
-    v = np.full((len(logs), steps), np.nan)
-    for r, (log, seed) in enumerate(zip(logs, seeds, strict=True)):
-        est = make_estimator(name, overrides, log.metadata)
-        est.reset(log.initial_pose, rng=np.random.default_rng(1000 + seed))
-        for t, step in enumerate(log.head(steps)):
-            est.step(step)
-            snap = est.estimate()
-            assert snap.pose_cov is not None
-            e = pose_error(snap.pose, log.true_poses[t + 1])
-            v[r, t] = e @ np.linalg.solve(snap.pose_cov, e)
-    return v
+    return np.stack([online_pose_nees(make_estimator(name, overrides, log.metadata), log,
+                                      np.random.default_rng(1000 + seed), steps)
+                     for log, seed in zip(logs, seeds, strict=True)])
 
 
 def range_only_nees(logs: list[Log], seeds: list[int], motion_scale: float, steps: int) -> np.ndarray:
     """(runs, steps) pose NEES of the range-only EKF (run of seed s seeded with s, as the test)."""
-    v = np.zeros((len(logs), steps))
-    for r, (log, seed) in enumerate(zip(logs, seeds, strict=True)):
+    def ekf(log: Log) -> RangeOnlyEKF:
         cfg = make_config("range-only-ekf", None, log.metadata)
-        est = RangeOnlyEKF(dataclasses.replace(cfg, motion=cfg.motion.scaled(motion_scale)))
-        est.reset(log.initial_pose, rng=np.random.default_rng(seed))
-        for t, step in enumerate(log.head(steps)):
-            est.step(step)
-            s = est.estimate()
-            e = pose_error(s.pose, log.true_poses[t + 1])
-            v[r, t] = e @ np.linalg.solve(s.pose_cov, e)
-    return v
+        return RangeOnlyEKF(dataclasses.replace(cfg, motion=cfg.motion.scaled(motion_scale)))
+    return np.stack([online_pose_nees(ekf(log), log, np.random.default_rng(seed), steps)
+                     for log, seed in zip(logs, seeds, strict=True)])
 
 
 def report(label: str, values: np.ndarray, runs: int, steps: int) -> None:

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from slam2d.eval.consistency import ConsistencySummary, monte_carlo_consistency, pose_error
+from slam2d.eval.consistency import ConsistencySummary, monte_carlo_consistency, online_pose_nees
 from slam2d.lab.registry import make_estimator
 from slam2d.log import Log
 from slam2d.sim.simulator import simulate
@@ -61,16 +61,8 @@ def logs(request: pytest.FixtureRequest) -> list[Log]:
 
 def pose_nees(name: str, logs: list[Log], overrides: dict[str, Any], steps: int = STEPS) -> ConsistencySummary:
     """Monte-Carlo pose NEES of estimator ``name`` over ``logs`` (first ``steps`` steps of each)."""
-    values = np.full((len(logs), steps), np.nan)
-    for r, log in enumerate(logs):
-        est = make_estimator(name, overrides, log.metadata)
-        est.reset(log.initial_pose, rng=np.random.default_rng(1000 + r))
-        for t, step in enumerate(log.head(steps)):
-            est.step(step)
-            snap = est.estimate()
-            assert snap.pose_cov is not None
-            e = pose_error(snap.pose, log.true_poses[t + 1])
-            values[r, t] = e @ np.linalg.solve(snap.pose_cov, e)
+    values = np.stack([online_pose_nees(make_estimator(name, overrides, log.metadata), log,
+                                        np.random.default_rng(1000 + r), steps) for r, log in enumerate(logs)])
     return monte_carlo_consistency(values, dof=3)
 
 

@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 
 import slam2d
-from slam2d.eval.consistency import monte_carlo_consistency
+from slam2d.eval.consistency import monte_carlo_consistency, online_pose_nees
 from slam2d.filters.range_only_ekf import RangeOnlyEKF, RangeOnlyEKFConfig
-from slam2d.geometry.angles import angle_diff
 from slam2d.geometry.trilateration import refine_point, trilaterate
 from slam2d.lab.registry import make_config
 from slam2d.log import Log, Observations, Step
@@ -87,18 +86,10 @@ def test_range_only_ekf_beats_dead_reckoning_on_a_simulated_loop():
 def _pose_nees(logs: list[Log], motion_scale: float, steps: int) -> np.ndarray:
     """Pose NEES (runs, steps) of the range-only EKF with its motion noise scaled by ``motion_scale`` over the first
     ``steps`` steps of each log (run r seeded with r)."""
-    nees = np.zeros((len(logs), steps))
-    for r, log in enumerate(logs):
+    def ekf(log: Log) -> RangeOnlyEKF:
         cfg = make_config("range-only-ekf", None, log.metadata)
-        est = RangeOnlyEKF(dataclasses.replace(cfg, motion=cfg.motion.scaled(motion_scale)))
-        est.reset(log.initial_pose, rng=np.random.default_rng(r))
-        for t, step in enumerate(log.head(steps)):
-            est.step(step)
-            s = est.estimate()
-            truth = log.true_poses[t + 1]
-            e = np.array([*(s.pose[:2] - truth[:2]), angle_diff(s.pose[2], truth[2])])
-            nees[r, t] = e @ np.linalg.solve(s.pose_cov, e)
-    return nees
+        return RangeOnlyEKF(dataclasses.replace(cfg, motion=cfg.motion.scaled(motion_scale)))
+    return np.stack([online_pose_nees(ekf(log), log, np.random.default_rng(r), steps) for r, log in enumerate(logs)])
 
 
 #: the overconfident filter fails over the first 40 steps of the same 30 runs by a wide margin. Measured, 30 runs x

@@ -15,8 +15,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import stats
 
+from slam2d.estimator import Estimator
 from slam2d.geometry.angles import angle_diff
 from slam2d.geometry.gaussian import mahalanobis_sq
+from slam2d.log import Log
 
 Array = NDArray[np.float64]
 
@@ -49,6 +51,23 @@ def nis(innovation: ArrayLike, innovation_cov: ArrayLike) -> Array:
 def pose_nees(estimates: ArrayLike, covs: ArrayLike, truth: ArrayLike) -> Array:
     """NEES of a pose trajectory (3 dof per pose). Shapes: (T,3),(T,3,3),(T,3) -> (T,)."""
     return nees(pose_error(estimates, truth), covs)
+
+
+def online_pose_nees(est: Estimator, log: Log, rng: np.random.Generator, steps: int) -> Array:
+    """(steps,) pose NEES of ``est`` run online from the start of ``log`` (reset with ``rng``): each step's estimate
+    against the log's true pose, ``e^T P^-1 e``; NaN past the log's end."""
+    if log.true_poses is None:
+        raise ValueError("online_pose_nees: the log has no true poses")
+    out = np.full(steps, np.nan)
+    est.reset(log.initial_pose, rng=rng)
+    for t, step in enumerate(log.head(steps)):
+        est.step(step)
+        snap = est.estimate()
+        if snap.pose_cov is None:
+            raise ValueError("online_pose_nees: the estimator reports no pose covariance")
+        e = pose_error(snap.pose, log.true_poses[t + 1])
+        out[t] = e @ np.linalg.solve(snap.pose_cov, e)
+    return out
 
 
 @dataclass(frozen=True)
