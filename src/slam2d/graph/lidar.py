@@ -55,6 +55,7 @@ from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, LoopEven
 from slam2d.frontend.correlative import run_stages
 from slam2d.frontend.icp import ICPTarget, prepare_target
 from slam2d.geometry import se2
+from slam2d.graph import lidar_loops
 from slam2d.graph.incremental import IncrementalPoseGraph
 from slam2d.graph.lidar_config import LidarSLAMConfig, LifelongLidarConfig
 from slam2d.graph.lidar_lifelong import LifelongMarkers, MarkerSurvey
@@ -382,10 +383,7 @@ class LidarSLAM(EstimatorLifecycle):
 
     # ------------------------------------------------------------------ maps
     def _points_in(self, poses: Array, lo: int, hi: int, frame: Array | None = None) -> Array:
-        """The points of keyframes lo..hi-1 placed at ``poses``, in ``frame`` (world when None)."""
-        pts = [se2.transform_points(poses[k], self._kf_points[k]) for k in range(max(lo, 0), min(hi, len(poses)))]
-        out = np.vstack(pts) if pts else np.zeros((0, 2))
-        return out if frame is None else se2.inverse_transform_points(frame, out)
+        return lidar_loops.keyframe_points(self._kf_points, poses, lo, hi, frame)
 
     def _local_target(self) -> ICPTarget:
         key = hash((len(self._kf_step), self._version))
@@ -450,16 +448,16 @@ class LidarSLAM(EstimatorLifecycle):
         m, pose, pts = cfg.loop_map_keyframes, poses[k], self._kf_points[k]
         guess = se2.between(poses[c], pose)
         target = self._points_in(poses, c - m, c + m + 1, poses[c])
-        chk = LoopCheck(guess, np.zeros((3, 3)), False, "retry", 0.0, 1.0) if wide else \
-            (yield from verify_loop_stages(pts, target, guess, cfg))
-        if wide or wants_retry(chk, guess, cfg):  # nothing matched, the best try at the window's edge
-            if wide is False:
-                return chk.rejected("retry")  # the scheduler queues the wider search as a candidate of its own
-            chk = yield from verify_loop_stages(pts, target, guess, cfg, wide=True)
-            return (yield from static_stages(self._kf_points, poses, c, k, chk, cfg, wide=True)) if chk.ok else chk
-        if chk.ok and chk.ambiguity > cfg.loop_static_ambiguity:
-            chk = yield from static_stages(self._kf_points, poses, c, k, chk, cfg)
-        return chk
+        if not wide:
+            chk = yield from verify_loop_stages(pts, target, guess, cfg)
+            if not wants_retry(chk, guess, cfg):
+                if chk.ok and chk.ambiguity > cfg.loop_static_ambiguity:
+                    chk = yield from static_stages(self._kf_points, poses, c, k, chk, cfg)
+                return chk
+            if wide is False:  # best try at the window's edge: the wide search is queued as a candidate of its own
+                return chk.rejected("retry")
+        chk = yield from verify_loop_stages(pts, target, guess, cfg, wide=True)
+        return (yield from static_stages(self._kf_points, poses, c, k, chk, cfg, wide=True)) if chk.ok else chk
 
     def close_loop_now(self, z: Array) -> bool:
         """Search loops for the newest keyframe now (the lab's "close loop now"); ``z`` (the newest landmark

@@ -35,6 +35,7 @@ __all__ = [
     "at_window_edge",
     "confirmed_mask",
     "enqueue",
+    "keyframe_points",
     "loops_agree",
     "static_stages",
     "verify_loop",
@@ -72,7 +73,7 @@ class LoopCheck:
 def verify_loop(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig, *, wide: bool = False) -> LoopCheck:
     """Scan-only gates of a loop candidate: the scan ``pts`` (N,2) in its own frame against ``target`` (M,2) in the
     old keyframe's frame, searched around ``guess`` = T_old_new (3,). ``wide``: the second search of a candidate
-    the first found nothing for (:func:`wide_correlative`). All at once; :func:`verify_loop_stages` in two steps."""
+    the first found nothing for (:func:`wide_correlative`). All at once; :func:`verify_loop_stages` in stages."""
     return run_stages(verify_loop_stages(pts, target, guess, cfg, wide=wide))
 
 
@@ -118,24 +119,28 @@ def verify_loop_stages(pts: Array, target: Array, guess: Array, cfg: LidarSLAMCo
     return replace(out, ok=True)
 
 
+def keyframe_points(kf_points: list[Array], poses: Array, lo: int, hi: int, frame: Array | None = None) -> Array:
+    """The points of keyframes lo..hi-1 (``kf_points``: each in its own frame) placed at ``poses``, in ``frame``
+    (world when None)."""
+    pts = [se2.transform_points(poses[j], kf_points[j]) for j in range(max(lo, 0), min(hi, len(poses)))]
+    out = np.vstack(pts) if pts else np.zeros((0, 2))
+    return out if frame is None else se2.inverse_transform_points(frame, out)
+
+
 def static_stages(kf_points: list[Array], poses: Array, c: int, k: int, chk: LoopCheck, cfg: LidarSLAMConfig, *,
                   wide: bool = False) -> Generator[None, None, LoopCheck]:
     """Loop (old keyframe ``c``, new keyframe ``k``) in a self-similar place, verified again on what two keyframes
     saw on the same surface (:func:`confirmed_mask`; a moving object may be all that breaks the tie): the old
     keyframe's local map, the new scan against the keyframes just before it. ``kf_points``: each keyframe's scan
     points in its frame, ``poses`` the keyframe poses, ``chk`` the check so far (returned as it is when
-    ``loop_static_radius_m`` is 0). Stages: the masks, the search, its refinement."""
+    ``loop_static_radius_m`` is 0). Stages: the masks, then the check (its wide search in its own stages)."""
     if cfg.loop_static_radius_m <= 0:
         return chk
     yield
     m, r, a, s = cfg.loop_map_keyframes, cfg.loop_static_radius_m, cfg.loop_static_normal_rad, cfg.loop_static_seen_m
-
-    def seen(j: int, frame: Array) -> Array:
-        return se2.inverse_transform_points(frame, se2.transform_points(poses[j], kf_points[j]))
-
-    old = [seen(j, poses[c]) for j in range(max(c - m, 0), min(c + m + 1, k))]
+    old = [keyframe_points(kf_points, poses, j, j + 1, poses[c]) for j in range(max(c - m, 0), min(c + m + 1, k))]
     pts = kf_points[k]
-    new = [pts] + [seen(j, poses[k]) for j in range(max(k - m, 0), k)]
+    new = [pts] + [keyframe_points(kf_points, poses, j, j + 1, poses[k]) for j in range(max(k - m, 0), k)]
     static_pts, static_old = pts[confirmed_mask(new, r, a, s)[:len(pts)]], np.vstack(old)
     static_old = static_old[confirmed_mask(old, r, a, s)]
     yield
