@@ -443,7 +443,9 @@ class LidarSLAM(EstimatorLifecycle):
         search and its refinement; the wide retry's ``loop_retry_stages``; a static re-check's masks, then its
         search); returns the check. ``poses`` are the keyframe poses when the candidate was queued: the guess,
         the old local map and the new keyframe's neighbours all come from them, so a candidate verified scans later
-        is decided exactly as it would have been at once (the graph moves in between)."""
+        is decided exactly as it would have been at once (the graph moves in between). ``wide``: None runs a wide
+        retry inline (a check at once), False returns it as a "retry" rejection for the scheduler to queue, True is
+        that queued retry."""
         cfg = self.config
         m, pose, pts = cfg.loop_map_keyframes, poses[k], self._kf_points[k]
         guess = se2.between(poses[c], pose)
