@@ -118,12 +118,19 @@ def test_no_false_loops_on_warehouse_seed_2() -> None:
     assert rec["loops_false"] == 0
 
 
-def test_loop_work_is_bounded_per_scan_and_finalize_verifies_what_is_left() -> None:
-    """Candidates are queued at keyframes and verified at most ``loop_verify_per_scan`` stages per scan (a
-    self-similar candidate takes three); with ``loop_queue`` candidates in flight a new one is refused (counted);
-    ``finalize`` verifies whatever still waits."""
+@pytest.mark.parametrize("budget_ms", [0.0, 20.0])
+def test_loop_work_is_bounded_per_scan_and_finalize_verifies_what_is_left(
+        budget_ms: float, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Candidates are queued at keyframes and verified ``loop_verify_per_scan`` stages per scan, more while the scan
+    is under ``loop_budget_ms`` of CPU (here a clock that counts 6 ms per stage: four stages reach 20 ms); with
+    ``loop_queue`` candidates in flight a new one is refused (counted); ``finalize`` verifies whatever still waits."""
+    import slam2d.graph.lidar as lidar_module
+
+    clock = [0.0]
+    monkeypatch.setattr(lidar_module.time, "thread_time", lambda: clock[0])
     log = simulate("room", seed=3, steps=300)
-    cfg = LidarSLAMConfig(loop_every=1, loop_candidates=4, loop_min_separation=10)
+    cfg = LidarSLAMConfig(loop_every=1, loop_candidates=4, loop_min_separation=10, loop_budget_ms=budget_ms,
+                          loop_search_stages=2)
     est = LidarSLAM(cfg)
     calls: list[int] = []  # verification stages run per scan
     finished = [0]
@@ -133,6 +140,7 @@ def test_loop_work_is_bounded_per_scan_and_finalize_verifies_what_is_left() -> N
         inner = stages(*a)
         while True:
             calls[-1] += 1
+            clock[0] += 0.006
             try:
                 next(inner)
             except StopIteration as stop:
@@ -142,12 +150,15 @@ def test_loop_work_is_bounded_per_scan_and_finalize_verifies_what_is_left() -> N
 
     est._check_stages = counted  # type: ignore[method-assign]
     est.reset(log.initial_pose, rng=np.random.default_rng(0))
-    waiting = 0
+    waiting, free = 0, []  # free: the scans in which no candidate fell due (one falling due is finished at once)
     for i in range(1, log.num_steps + 1):
         calls.append(0)
+        due = [e[3] for e in est._queue] + ([est._active[3]] if est._active else [])
+        free.append(min(due, default=i + 1) > i)
         est.step(log.step(i))
         waiting = max(waiting, len(est._queue))
-    assert max(calls) == 1 and sum(calls) > finished[0] > 20 and waiting > 1  # more candidates than one scan verifies
+    assert max(c for c, f in zip(calls, free, strict=True) if f) == (1 if budget_ms == 0 else 4)
+    assert sum(calls) > finished[0] > 20 and waiting > 1  # more candidates than one scan verifies
     left = len(est._queue) + (est._active is not None)
     finished[0] = 0
     est.finalize()
@@ -186,22 +197,24 @@ def test_a_queued_candidate_is_decided_the_same_whenever_it_is_verified() -> Non
 
 @pytest.mark.parametrize("retry_m", [0.0, 2.5])
 def test_loops_do_not_depend_on_when_candidates_are_verified(retry_m: float) -> None:
-    """All candidates verified in the scan that queued them, or one stage per scan: the same loops, the same
-    measurements, the same trajectory (decisions enter the graph a fixed number of scans after queueing; a wide
-    retry is a candidate of its own, due ``loop_queue`` scans after the first search's decision would have been)."""
+    """All candidates verified in the scan that queued them, one stage per scan, or as many as this machine's CPU
+    time allows (``loop_budget_ms``): the same loops, the same measurements, the same trajectory (decisions enter
+    the graph a fixed number of scans after queueing; a wide retry is a candidate of its own, due ``loop_queue``
+    scans after the first search's decision would have been)."""
     log = simulate("room", seed=3, steps=300)
     cfg = LidarSLAMConfig(loop_min_separation=10, loop_retry_window_m=retry_m)
     runs = []
-    for per_scan in (cfg.loop_queue, 1):
-        est = LidarSLAM(replace(cfg, loop_verify_per_scan=per_scan))
+    for per_scan, budget in ((cfg.loop_queue * 8, 0.0), (1, 0.0), (1, cfg.loop_budget_ms)):
+        est = LidarSLAM(replace(cfg, loop_verify_per_scan=per_scan, loop_budget_ms=budget))
         res = run(est, log, rng=np.random.default_rng(0), progress=False)
         assert est.loops_dropped == 0 and (est.loops_retried > 5) == (retry_m > 0)
         runs.append((res, est.loops_accepted))
-    (at_once, n_once), (spread, n_spread) = runs
-    assert n_once == n_spread > 10
-    key = [[(lp.a, lp.b, lp.accepted, tuple(lp.T_a_b)) for lp in r.loops] for r in (at_once, spread)]
-    assert key[0] == key[1]
-    assert np.array_equal(at_once.trajectory, spread.trajectory)
+    (at_once, n_once), *rest = runs
+    for spread, n_spread in rest:
+        assert n_once == n_spread > 10
+        key = [[(lp.a, lp.b, lp.accepted, tuple(lp.T_a_b)) for lp in r.loops] for r in (at_once, spread)]
+        assert key[0] == key[1]
+        assert np.array_equal(at_once.trajectory, spread.trajectory)
 
 
 def test_correlative_grid_cropped_to_the_scans_reach_gives_the_whole_grids_results(

@@ -193,13 +193,13 @@ def test_a_staged_correlative_search_pauses_stages_minus_one_times_and_equals_th
     assert run_stages(correlative_stages(pts, target, guess, cc, stages=stages)).score == once.score
 
 
-def test_a_staged_loop_check_pauses_only_inside_the_wide_search_and_equals_the_check_at_once() -> None:
+def test_a_staged_loop_check_pauses_in_its_search_and_before_icp_and_equals_the_check_at_once() -> None:
     rng = np.random.default_rng(0)
-    cfg = LidarSLAMConfig(loop_retry_window_m=2.5, loop_retry_stages=3)
+    cfg = LidarSLAMConfig(loop_retry_window_m=2.5, loop_retry_stages=3, loop_search_stages=2)
     pts, target, guess, truth = _return(rng, posts=False)
     pauses, first = _stages_run(verify_loop_stages(pts, target, guess, cfg))
-    assert pauses == 0 and first.reason == "score"  # a first search is one stage
+    assert pauses == cfg.loop_search_stages - 1 and first.reason == "score"  # rejected before ICP: no ICP stage
     pauses, wide = _stages_run(verify_loop_stages(pts, target, guess, cfg, wide=True))
-    assert pauses == cfg.loop_retry_stages - 1 and wide.ok
+    assert pauses == cfg.loop_retry_stages and wide.ok  # the search's stages, then ICP's
     at_once = verify_loop(pts, target, guess, cfg, wide=True)
     assert np.array_equal(at_once.transform, wide.transform) and at_once.chi2 == wide.chi2

@@ -10,16 +10,16 @@ Per step (one scan):
    keyframe, the scan becomes a keyframe: a node of the pose graph with a relative-pose edge from the previous
    keyframe (the tracking covariance rotated into that keyframe's frame, floored);
 3. loop closures (every ``loop_every`` keyframes): old keyframes within ``loop_radius_m`` of the new one (and at
-   least ``loop_min_separation`` keyframes older) are queued as candidates; each scan runs at most
-   ``loop_verify_per_scan`` verification stages, against a local map around the old keyframe: correlative matching
-   over a window (:mod:`slam2d.frontend.correlative`; a high score and no competing alignment nearly as good:
-   parallel identical aisles, corridor axes; with ``loop_retry_window_m`` set, a search that matched nothing with
-   its best try at the window's edge runs again over that window as a candidate of its own, where only rival
-   peaks count), ICP refinement; a loop in a self-similar place (ambiguity above ``loop_static_ambiguity``) is
-   verified again on static structure only, the points no other keyframe contradicts
-   (:mod:`slam2d.graph.lidar_loops`: a moving forklift can break an aisle's tie); a verified loop is accepted once
-   a second one agrees with it; its decision enters the graph a fixed ``loop_queue`` scans after queueing
-   (results independent of the schedule);
+   least ``loop_min_separation`` keyframes older) are queued as candidates; each scan runs
+   ``loop_verify_per_scan`` verification stages (more while under ``loop_budget_ms`` of CPU), against a local map
+   around the old keyframe: correlative matching over a window (:mod:`slam2d.frontend.correlative`; a high score
+   and no competing alignment nearly as good: parallel identical aisles, corridor axes; with ``loop_retry_window_m``
+   set, a search that matched nothing with its best try at the window's edge runs again over that window as a
+   candidate of its own, where only rival peaks count), ICP refinement; a loop in a self-similar place (ambiguity
+   above ``loop_static_ambiguity``) is verified again on static structure only, the points no other keyframe
+   contradicts (:mod:`slam2d.graph.lidar_loops`: a moving forklift can break an aisle's tie); a verified loop is
+   accepted once a second one agrees with it; its decision enters the graph a fixed ``loop_queue`` scans after
+   queueing (results independent of the schedule);
 4. the keyframe and its edges enter :class:`~slam2d.graph.incremental.IncrementalPoseGraph`: a local solve when a
    loop enters, then ``loop_full_iterations`` whole-graph Gauss-Newton iterations, one per scan, one every
    ``graph.full_every`` keyframes, the whole graph to convergence in ``finalize`` (bounded work per scan).
@@ -45,6 +45,7 @@ sighting (``map_unsurveyed_markers``), which pins later passes to that first pas
 
 from __future__ import annotations
 
+import time
 from collections import deque
 from collections.abc import Generator
 
@@ -117,14 +118,13 @@ class LidarSLAM(EstimatorLifecycle):
         self._queue: deque[tuple[int, int, Array, int, bool]] = deque()
         self._active: tuple[int, int, Array, int, Generator[None, None, LoopCheck]] | None = None  # in verification
         self._decided: deque[tuple[int, list[LoopEvent], list[tuple[int, int, Array, Array]]]] = deque()
-        self._full_pending = 0  # whole-graph Gauss-Newton iterations still owed after a loop
+        self._full_pending, self._started = 0, 0.0  # whole-graph GN iterations owed after a loop; step's start
         self.loops_dropped = 0  # candidates refused because loop_queue were in flight
         self.loops_retried = 0  # candidates searched again over loop_retry_window_m
         self._live: deque[int] = deque()  # when the candidates in flight are due
         self.tracking_failures = 0
         self.rematches = 0  # tracking matches replaced by a correlative re-match (graph/lidar_tracking.py)
-        self.loops_accepted = 0
-        self.loops_rejected = 0
+        self.loops_accepted = self.loops_rejected = 0
         self.steps = 0
         self.layers = None if self.config.layers is None else MapLayers(self.config.layers)
         self._poses = PoseBuffer()  # lifelong mode: every pose (the keyframes never move there)
@@ -150,6 +150,7 @@ class LidarSLAM(EstimatorLifecycle):
 
     def step(self, step: Step) -> None:
         self._check_step()
+        self._started = time.thread_time()  # the loop work's budget counts from here (loop_budget_ms)
         self._step_scan(step)
         if step.markers is not None and self.config.markers.enabled and self.layers is None \
                 and isinstance(self.graph, MarkerPoseGraph) \
@@ -310,9 +311,10 @@ class LidarSLAM(EstimatorLifecycle):
 
     # ------------------------------------------------------------------ loop work, bounded per scan
     def _loop_work(self, verifications: int, *, flush: bool = False) -> None:
-        """One scan's share of the loop work: a whole-graph Gauss-Newton iteration if a loop still owes some, at
-        most ``verifications`` verification stages of queued candidates, and the decisions that are due entered
-        (``flush``: everything now). No scan pays for a whole search (a 30 Hz lidar leaves 33 ms per scan).
+        """One scan's share of the loop work: a whole-graph Gauss-Newton iteration if a loop still owes some,
+        ``verifications`` verification stages of queued candidates and more while the scan is under
+        ``loop_budget_ms``, and the decisions that are due entered (``flush``: everything now). No scan pays for a
+        whole search (a 30 Hz lidar leaves 33 ms per scan).
         Schedule independence: a candidate is verified against the keyframe poses of the moment it was queued,
         and its decision enters the graph exactly ``loop_queue`` scans after that moment (a candidate still
         unverified then is finished at once), so the loops and the trajectory do not depend on how the stages
@@ -324,9 +326,10 @@ class LidarSLAM(EstimatorLifecycle):
             # converged (the step changed the cost too little): the rest of the owed iterations are not needed
             self._full_pending = 0 if summary.termination != "max iterations" else self._full_pending - 1
             moved = True
-        done = 0  # verification stages run in this scan
+        done, budget = 0, self.config.loop_budget_ms / 1e3  # verification stages run in this scan, CPU budget
         while (self._active or self._queue) and (
-                done < verifications or flush or (self._active or self._queue[0])[3] <= self.steps):
+                done < verifications or flush or (self._active or self._queue[0])[3] <= self.steps
+                or time.thread_time() - self._started < budget):
             if self._active is None:
                 if not flush and self._queue[0][3] - self.config.loop_queue > self.steps:
                     break  # a wide retry waits until no candidate queued later can be due before it

@@ -79,14 +79,12 @@ def verify_loop(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig, *
 
 def verify_loop_stages(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig, *,
                        wide: bool = False) -> Generator[None, None, LoopCheck]:
-    """:func:`verify_loop` in stages that pause in between: the wide search's coarse scores split by rotation
-    into ``loop_retry_stages`` (the last one with the rest of the check); a first search is one stage."""
+    """:func:`verify_loop` in stages that pause in between: the correlative scores split by rotation into
+    ``loop_search_stages`` (``loop_retry_stages`` for the wide search), then, when the score and ambiguity gates
+    pass, ICP and the later gates."""
     cc = wide_correlative(cfg) if wide else cfg.correlative
-    if wide:  # the wide search's coarse scores in loop_retry_stages stages
-        cm = yield from correlative_stages(pts[::cfg.loop_retry_stride], target, guess, cc,
-                                           stages=cfg.loop_retry_stages)
-    else:
-        cm = correlative_match(pts, target, guess, cc)
+    cm = yield from correlative_stages(pts[::cfg.loop_retry_stride] if wide else pts, target, guess, cc,
+                                       stages=cfg.loop_retry_stages if wide else cfg.loop_search_stages)
     base = LoopCheck(cm.transform, np.zeros((3, 3)), False, "", cm.score, cm.ambiguity)
     if cm.score < cfg.loop_min_score:
         return base.rejected("score")
@@ -94,6 +92,7 @@ def verify_loop_stages(pts: Array, target: Array, guess: Array, cfg: LidarSLAMCo
         return base.rejected("edge")  # the scores still rise at the window's edge: the peak may lie beyond it
     if cm.ambiguity > cfg.loop_max_ambiguity:
         return base.rejected("ambiguity")
+    yield
     prep = prepare_target(target, cfg.loop_icp)
     res = icp(pts, prep, initial=cm.transform, config=cfg.loop_icp)
     sigma = float(np.sqrt(np.linalg.eigvalsh(res.covariance[:2, :2])[-1])) \
