@@ -94,22 +94,22 @@ class LidarSLAMConfig:
     loop_max_ambiguity: float = 0.9
     """a loop is rejected when a competing alignment outside the ambiguity radius scores this fraction of the
     best (identical aisles, a corridor's axis)."""
-    loop_retry_window_m: float = 0.0
+    loop_retry_window_m: float = 2.5
     """a candidate whose correlative search matched nothing (score gate), its best try lying at the window's edge
     (the scores still rising there), is searched again over +- this window, counting only rivals that are peaks of
     their own (:func:`slam2d.graph.lidar_loops.wide_correlative`), as a candidate of its own (due ``loop_queue``
     scans after the first search's decision, in ``loop_retry_stages`` stages); every later gate and the pair
-    confirmation still apply, and such a loop is always re-verified on static structure.
+    confirmation still apply, and such a loop is always re-verified on static structure (m; 0: off).
     ACES's return to its start (guess 1.7 m off): closed at 2.5 m, not reliably at 2.0 (a best alignment near the
-    window's edge is rejected). Retrying ambiguity failures too let a warehouse seed accept loops slid 2.3 m along
-    an aisle; retrying every score failure, not only those at the edge, searched mit-csail 364 times instead of
-    202 (``LidarSLAM.loops_retried``) for the same loops. Off by default: at 2.5 m, with ``local_map_keyframes=4``, aces
-    0.0475 -> 0.0365 m, mit-csail 0.0310, but candidates still unverified at their due scan are finished at once
-    (``loop_queue``), so the retries crowd into those scans: mit-csail's CPU p99 per scan 50 -> 79 ms (both with
-    ``local_map_keyframes=4``, side by side on a loaded machine; 46 -> 93 ms when the retry ran inside the first
-    search's due window). Never finishing a candidate at once failed both ways: letting it enter late
-    (``loop_queue``) saturated verification with the retry on (128 waiting on fr079 and mit-csail, intel's
-    real-time factor down by 28 %); giving up an overdue retry lost aces's return (0.0462 m) (m; 0: off)."""
+    window's edge is rejected); aces 0.0475 -> 0.0384 m, intel, fr079, mit-csail and the simulated room and
+    warehouse seeds unchanged (``benchmarks/lidar_backend.py``). Retrying ambiguity failures too let a warehouse
+    seed accept loops slid 2.3 m along an aisle; retrying every score failure, not only those at the edge,
+    searched mit-csail 364 times instead of 202 (``LidarSLAM.loops_retried``) for the same loops. It was off by
+    default while verification ran one stage per scan: candidates still unverified at their due scan are finished
+    at once (``loop_queue``), and the retries crowded into those scans (mit-csail CPU p99 65 ms); stages that fill
+    each scan's ``loop_budget_ms`` left 9 such scans in 1900 (p99 32 ms). Never finishing a candidate at once
+    failed both ways: letting it enter late (``loop_queue``) saturated verification (128 waiting on fr079 and
+    mit-csail, intel's real-time factor down by 28 %); giving up an overdue retry lost aces's return (0.0462 m)."""
     loop_retry_step_cells: int = 4
     """coarse translation step of that wider search, in ``correlative.resolution_m`` cells."""
     loop_retry_stride: int = 3
@@ -161,7 +161,9 @@ class LidarSLAMConfig:
     fixed scans, a candidate not verified by then is finished at once); latency does: stages fill the scans whose
     tracking left time, so fewer candidates are left to be finished at once at their due scan. With one stage per
     scan and the wide retry on, those finishes made mit-csail's CPU p99 65 ms (top 1 % of scans: 90 ms of loop
-    work); two stages per scan put two 15-25 ms searches into one scan (p99 57 ms)."""
+    work); two stages per scan put two 15-25 ms searches into one scan (p99 57 ms). Going by the cost of the last
+    stages (no stage unless the longest of the last 16 still fits, none forced) ran fewer: more candidates were
+    finished at once (p99 71 ms). 25 ms: p99 34-35 ms with and without the retry; 20: 30-32 ms."""
     loop_search_stages: int = 3
     """a first search's correlative scores run as this many verification stages (split by rotation; 4-6 ms each
     on mit-csail, where the whole search took 15 ms and a passing candidate's ICP another 14 ms)."""
