@@ -103,6 +103,8 @@ class LidarSLAM(EstimatorLifecycle):
         self._kf_step: list[int] = []  # step index of each keyframe
         self._kf_points: list[Array] = []  # scan-frame points of each keyframe
         self._kf_scans: list[Scan] = []
+        self._driven_m: list[float] = []  # distance driven (along the keyframe edges) up to each keyframe
+        self._last_loop_kf = 0  # newest keyframe of a loop that entered the graph: drift restarts there
         self._owner = [-1]  # per pose (step 0..t): its keyframe (-1: none yet, ``_rel`` is then the world pose)
         self._rel = [self._pose.copy()]
         self._target: ICPTarget | None = None
@@ -114,8 +116,9 @@ class LidarSLAM(EstimatorLifecycle):
         # verified loops of the last ``loop_pair_keyframes`` keyframes: (old kf, new kf, T, information, accepted)
         self._pool: list[tuple[int, int, Array, Array, bool, Array]] = []  # ..., the poses it was verified at
         # loop candidates awaiting verification: (old kf, new kf, the keyframe poses when they were queued, the scan
-        # their decision enters the graph, wide retry?), and decisions awaiting that scan: (scan, events, loops)
-        self._queue: deque[tuple[int, int, Array, int, bool]] = deque()
+        # their decision enters the graph, wide retry?, may it be retried?), and decisions awaiting that scan: (scan,
+        # events, loops)
+        self._queue: deque[tuple[int, int, Array, int, bool, bool]] = deque()
         self._active: tuple[int, int, Array, int, Generator[None, None, LoopCheck]] | None = None  # in verification
         self._decided: deque[tuple[int, list[LoopEvent], list[tuple[int, int, Array, Array]]]] = deque()
         self._full_pending, self._started = 0, 0.0  # whole-graph GN iterations owed after a loop; step's start
@@ -283,6 +286,7 @@ class LidarSLAM(EstimatorLifecycle):
         self._kf_points.append(pts)
         assert scan is not None
         self._kf_scans.append(scan)
+        self._driven_m.append(0.0 if z is None else self._driven_m[-1] + float(np.hypot(z[0], z[1])))
         self._owner.append(k)
         self._rel.append(np.zeros(3))
         if z is None:
@@ -307,7 +311,7 @@ class LidarSLAM(EstimatorLifecycle):
                     continue
                 assert snap is not None
                 self._live.append(self.steps + cfg.loop_queue)
-                enqueue(self._queue, (c, k, snap, self.steps + cfg.loop_queue, False))
+                enqueue(self._queue, (c, k, snap, self.steps + cfg.loop_queue, False, self._may_retry(k)))
 
     # ------------------------------------------------------------------ loop work, bounded per scan
     def _loop_work(self, verifications: int, *, flush: bool = False) -> None:
@@ -333,8 +337,8 @@ class LidarSLAM(EstimatorLifecycle):
             if self._active is None:
                 if not flush and self._queue[0][3] - self.config.loop_queue > self.steps:
                     break  # a wide retry waits until no candidate queued later can be due before it
-                c, k, snap, due, wide = self._queue.popleft()
-                self._active = (c, k, snap, due, self._check_stages(c, k, snap, wide))
+                c, k, snap, due, wide, may_retry = self._queue.popleft()
+                self._active = (c, k, snap, due, self._check_stages(c, k, snap, wide, may_retry=may_retry))
             done += 1
             try:
                 next(self._active[4])
@@ -342,7 +346,7 @@ class LidarSLAM(EstimatorLifecycle):
                 c, k, snap, due, _ = self._active
                 self._active, chk = None, stop.value
                 if chk.reason == "retry":  # a candidate of its own, due loop_queue scans later: no crowded due scan
-                    enqueue(self._queue, (c, k, snap, due + self.config.loop_queue, True))
+                    enqueue(self._queue, (c, k, snap, due + self.config.loop_queue, True, True))
                     self.loops_retried += 1
                     continue
                 self._decided.append((due, *self._decide(c, k, chk.transform, chk.information, chk.ok, snap)))
@@ -352,6 +356,7 @@ class LidarSLAM(EstimatorLifecycle):
             events += evs
             for c, k, t_ck, info in loops:
                 self.graph.add_loop(c, k, t_ck, info)
+                self._last_loop_kf = max(self._last_loop_kf, k)
                 moved = True
                 self._full_pending = self.config.loop_full_iterations
         self.loops_accepted += sum(e.accepted for e in events)
@@ -430,32 +435,37 @@ class LidarSLAM(EstimatorLifecycle):
                 break
         return cand
 
+    def _may_retry(self, k: int) -> bool:
+        """May keyframe ``k``'s loop candidates get the wide retry? Only after ``loop_retry_after_m`` of driving
+        since the newest loop entered the graph: sooner, the drift cannot have outgrown the first window."""
+        return self._driven_m[k] - self._driven_m[self._last_loop_kf] >= self.config.loop_retry_after_m
+
     def _search_loops(self, k: int) -> list[tuple[int, LoopCheck]]:
         """Verify every candidate of keyframe ``k`` now: (old keyframe, its check)."""
         assert self.graph is not None
-        snap = self.graph.poses.copy()
-        return [(c, self._check_candidate(c, k, snap)) for c in self._loop_candidates(k, snap[k])]
+        snap, may_retry = self.graph.poses.copy(), self._may_retry(k)
+        return [(c, self._check_candidate(c, k, snap, may_retry)) for c in self._loop_candidates(k, snap[k])]
 
-    def _check_candidate(self, c: int, k: int, poses: Array) -> LoopCheck:
+    def _check_candidate(self, c: int, k: int, poses: Array, may_retry: bool = True) -> LoopCheck:
         """Every gate of a loop candidate, with the values it saw, all stages at once (see ``_check_stages``)."""
-        return run_stages(self._check_stages(c, k, poses))
+        return run_stages(self._check_stages(c, k, poses, may_retry=may_retry))
 
-    def _check_stages(self, c: int, k: int, poses: Array,
-                      wide: bool | None = None) -> Generator[None, None, LoopCheck]:
+    def _check_stages(self, c: int, k: int, poses: Array, wide: bool | None = None, *,
+                      may_retry: bool = True) -> Generator[None, None, LoopCheck]:
         """Every gate of a loop candidate (:mod:`slam2d.graph.lidar_loops`), as stages that pause in between (the
         search and its refinement; the wide retry's ``loop_retry_stages``; a static re-check's masks, then its
         search); returns the check. ``poses`` are the keyframe poses when the candidate was queued: the guess,
         the old local map and the new keyframe's neighbours all come from them, so a candidate verified scans later
         is decided exactly as it would have been at once (the graph moves in between). ``wide``: None runs a wide
         retry inline (a check at once), False returns it as a "retry" rejection for the scheduler to queue, True is
-        that queued retry."""
+        that queued retry; ``may_retry`` False: no retry at all (see ``_may_retry``)."""
         cfg = self.config
         m, pose, pts = cfg.loop_map_keyframes, poses[k], self._kf_points[k]
         guess = se2.between(poses[c], pose)
         target = self._points_in(poses, c - m, c + m + 1, poses[c])
         if not wide:
             chk = yield from verify_loop_stages(pts, target, guess, cfg)
-            if not wants_retry(chk, guess, cfg):
+            if not (may_retry and wants_retry(chk, guess, cfg)):
                 if chk.ok and chk.ambiguity > cfg.loop_static_ambiguity:
                     chk = yield from static_stages(self._kf_points, poses, c, k, chk, cfg)
                 return chk

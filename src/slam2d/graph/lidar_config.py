@@ -110,6 +110,11 @@ class LidarSLAMConfig:
     each scan's ``loop_budget_ms`` left 9 such scans in 1900 (p99 32 ms). Never finishing a candidate at once
     failed both ways: letting it enter late (``loop_queue``) saturated verification (128 waiting on fr079 and
     mit-csail, intel's real-time factor down by 28 %); giving up an overdue retry lost aces's return (0.0462 m)."""
+    loop_retry_after_m: float = 40.0
+    """the wide retry is only for the candidates of a keyframe reached after this much driving since the newest loop
+    entered the graph (along the keyframe edges): sooner, the drift cannot have outgrown the first window (1 m
+    at 2.5 % of the distance driven). Chosen on aces and intel: of 640 retries on intel none passed and 4 came
+    after 40 m; aces's return comes after 97 m (m; 0: every candidate at the window's edge)."""
     loop_retry_step_cells: int = 4
     """coarse translation step of that wider search, in ``correlative.resolution_m`` cells."""
     loop_retry_stride: int = 3

@@ -146,8 +146,9 @@ def static_stages(kf_points: list[Array], poses: Array, c: int, k: int, chk: Loo
     return (yield from verify_loop_stages(static_pts, static_old, se2.between(poses[c], poses[k]), cfg, wide=wide))
 
 
-def enqueue(queue: deque[tuple[int, int, Array, int, bool]], entry: tuple[int, int, Array, int, bool]) -> None:
-    """Insert a loop candidate (old kf, new kf, poses, due scan, wide retry?) into ``queue`` in the order (due scan,
+def enqueue(queue: deque[tuple[int, int, Array, int, bool, bool]],
+            entry: tuple[int, int, Array, int, bool, bool]) -> None:
+    """Insert a loop candidate (old kf, new kf, poses, due scan, wide retry?, may it be retried?) into ``queue`` in the order (due scan,
     first search before wide retry, arrival): the order decisions are made in, which no stage timing may move."""
     at = next((i for i, e in enumerate(queue) if (e[3], e[4]) > (entry[3], entry[4])), len(queue))
     queue.insert(at, entry)
