@@ -136,8 +136,8 @@ def test_loop_work_is_bounded_per_scan_and_finalize_verifies_what_is_left(
     finished = [0]
     stages = est._check_stages
 
-    def counted(*a: Any) -> Generator[None, None, LoopCheck]:
-        inner = stages(*a)
+    def counted(*a: Any, **kw: Any) -> Generator[None, None, LoopCheck]:
+        inner = stages(*a, **kw)
         while True:
             calls[-1] += 1
             clock[0] += 0.006
@@ -195,26 +195,41 @@ def test_a_queued_candidate_is_decided_the_same_whenever_it_is_verified() -> Non
     assert np.array_equal(later.information, first.information) and later.score == first.score
 
 
-@pytest.mark.parametrize("retry_m", [0.0, 2.5])
-def test_loops_do_not_depend_on_when_candidates_are_verified(retry_m: float) -> None:
+@pytest.mark.parametrize(("retry_m", "after_m"), [(0.0, 0.0), (2.5, 0.0), (2.5, 5.0)])
+def test_loops_do_not_depend_on_when_candidates_are_verified(retry_m: float, after_m: float) -> None:
     """All candidates verified in the scan that queued them, one stage per scan, or as many as this machine's CPU
     time allows (``loop_budget_ms``): the same loops, the same measurements, the same trajectory (decisions enter
     the graph a fixed number of scans after queueing; a wide retry is a candidate of its own, due ``loop_queue``
-    scans after the first search's decision would have been)."""
+    scans after the first search's decision would have been; whether a keyframe's candidates may be retried,
+    ``loop_retry_after_m``, is read when they are queued)."""
     log = simulate("room", seed=3, steps=300)
-    cfg = LidarSLAMConfig(loop_min_separation=10, loop_retry_window_m=retry_m)
+    cfg = LidarSLAMConfig(loop_min_separation=10, loop_retry_window_m=retry_m, loop_retry_after_m=after_m)
     runs = []
     for per_scan, budget in ((cfg.loop_queue * 8, 0.0), (1, 0.0), (1, cfg.loop_budget_ms)):
         est = LidarSLAM(replace(cfg, loop_verify_per_scan=per_scan, loop_budget_ms=budget))
         res = run(est, log, rng=np.random.default_rng(0), progress=False)
-        assert est.loops_dropped == 0 and (est.loops_retried > 5) == (retry_m > 0)
-        runs.append((res, est.loops_accepted))
-    (at_once, n_once), *rest = runs
-    for spread, n_spread in rest:
-        assert n_once == n_spread > 10
+        assert est.loops_dropped == 0 and (est.loops_retried > 0) == (retry_m > 0)
+        runs.append((res, est.loops_accepted, est.loops_retried))
+    (at_once, n_once, r_once), *rest = runs
+    for spread, n_spread, r_spread in rest:
+        assert n_once == n_spread > 10 and r_once == r_spread
         key = [[(lp.a, lp.b, lp.accepted, tuple(lp.T_a_b)) for lp in r.loops] for r in (at_once, spread)]
         assert key[0] == key[1]
         assert np.array_equal(at_once.trajectory, spread.trajectory)
+
+
+def test_the_wide_retry_waits_for_driving_since_the_newest_loop() -> None:
+    """``loop_retry_after_m``: at 0 every candidate whose search ended at the window's edge is retried; the room
+    drive closes a loop every few metres, so a 5 m rule leaves fewer retries and a 100 m rule (more than the whole
+    57 m drive) none."""
+    log = simulate("room", seed=3, steps=300)
+    retried = []
+    for after_m in (0.0, 5.0, 100.0):
+        est = LidarSLAM(LidarSLAMConfig(loop_min_separation=10, loop_retry_after_m=after_m))
+        run(est, log, rng=np.random.default_rng(0), progress=False)
+        assert est._driven_m[-1] < 100.0
+        retried.append(est.loops_retried)
+    assert retried[0] > retried[1] > retried[2] == 0
 
 
 def test_correlative_grid_cropped_to_the_scans_reach_gives_the_whole_grids_results(
