@@ -234,7 +234,8 @@ class LidarSLAMConfig:
         if (self.surveyed_markers or self.map_unsurveyed_markers) and self.layers is None:
             raise ValueError("LidarSLAMConfig.surveyed_markers and map_unsurveyed_markers are used by the lifelong "
                              "mode only (set layers)")
-        check_nonnegative(self, "loop_static_radius_m", "track_rematch_points", "loop_retry_window_m", "loop_budget_ms")
+        check_nonnegative(self, "loop_static_radius_m", "track_rematch_points", "loop_retry_window_m", "loop_budget_ms",
+                          "loop_retry_after_m")
         check_positive(self, "track_rematch_rmse_m")
         if self.loop_map_keyframes < 0:
             raise ValueError(f"LidarSLAMConfig.loop_map_keyframes must be >= 0 (got {self.loop_map_keyframes})")
