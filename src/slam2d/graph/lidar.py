@@ -301,7 +301,7 @@ class LidarSLAM(EstimatorLifecycle):
             self._version += 1
         self._pose = self.graph.poses[-1].copy()
         if cfg.loop_closure and k % cfg.loop_every == 0:
-            cands = self._loop_candidates(k, pose)
+            cands = lidar_loops.loop_candidates(self.graph.poses, k, pose, cfg)
             snap = self.graph.poses.copy() if cands else None  # what a verification right now would see
             while self._live and self._live[0] <= self.steps:
                 self._live.popleft()
@@ -415,26 +415,6 @@ class LidarSLAM(EstimatorLifecycle):
         return self._target
 
     # ------------------------------------------------------------------ loops
-    def _loop_candidates(self, k: int, pose: Array) -> list[int]:
-        """Old keyframes to verify against new keyframe ``k`` at ``pose``: within ``loop_radius_m``, at least
-        ``loop_min_separation`` keyframes older, nearest first, one per local map, at most ``loop_candidates``."""
-        cfg = self.config
-        assert self.graph is not None
-        old = k - cfg.loop_min_separation
-        if old <= 0:
-            return []
-        poses = self.graph.poses
-        dist = np.hypot(*(poses[:old, :2] - pose[:2]).T)
-        near = np.flatnonzero(dist < cfg.loop_radius_m)
-        m = cfg.loop_map_keyframes
-        cand: list[int] = []
-        for c in near[np.argsort(dist[near], kind="stable")].tolist():
-            if all(abs(c - o) > m for o in cand):
-                cand.append(c)
-            if len(cand) == cfg.loop_candidates:
-                break
-        return cand
-
     def _may_retry(self, k: int) -> bool:
         """May keyframe ``k``'s loop candidates get the wide retry? Only after ``loop_retry_after_m`` of driving
         since the newest loop entered the graph: sooner, the drift cannot have outgrown the first window."""
@@ -444,7 +424,8 @@ class LidarSLAM(EstimatorLifecycle):
         """Verify every candidate of keyframe ``k`` now: (old keyframe, its check)."""
         assert self.graph is not None
         snap, may_retry = self.graph.poses.copy(), self._may_retry(k)
-        return [(c, self._check_candidate(c, k, snap, may_retry)) for c in self._loop_candidates(k, snap[k])]
+        cands = lidar_loops.loop_candidates(snap, k, snap[k], self.config)
+        return [(c, self._check_candidate(c, k, snap, may_retry)) for c in cands]
 
     def _check_candidate(self, c: int, k: int, poses: Array, may_retry: bool = True) -> LoopCheck:
         """Every gate of a loop candidate, with the values it saw, all stages at once (see ``_check_stages``)."""
@@ -607,6 +588,8 @@ class LidarSLAM(EstimatorLifecycle):
         self._kf_step.append(step_index)
         self._kf_points.append(scan_points(scan, cfg.min_range_m, cfg.max_range_m))
         self._kf_scans.append(scan)
+        # the saved keyframes were not driven in this run, and relocalising tied this one to them like a loop
+        self._driven_m, self._last_loop_kf = [0.0] * (n + 1), n
         self._owner[0], self._rel[0] = n, np.zeros(3)
         self._pose = self.graph.poses[-1].copy()
         self._version += 1

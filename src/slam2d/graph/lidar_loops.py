@@ -36,6 +36,7 @@ __all__ = [
     "confirmed_mask",
     "enqueue",
     "keyframe_points",
+    "loop_candidates",
     "loops_agree",
     "static_stages",
     "verify_loop",
@@ -146,10 +147,29 @@ def static_stages(kf_points: list[Array], poses: Array, c: int, k: int, chk: Loo
     return (yield from verify_loop_stages(static_pts, static_old, se2.between(poses[c], poses[k]), cfg, wide=wide))
 
 
+def loop_candidates(poses: Array, k: int, pose: Array, cfg: LidarSLAMConfig) -> list[int]:
+    """Old keyframes (of the keyframe ``poses``) to verify against new keyframe ``k`` at ``pose``: within
+    ``loop_radius_m``, at least ``loop_min_separation`` keyframes older, nearest first, one per local map, at most
+    ``loop_candidates``."""
+    old = k - cfg.loop_min_separation
+    if old <= 0:
+        return []
+    dist = np.hypot(*(poses[:old, :2] - pose[:2]).T)
+    near = np.flatnonzero(dist < cfg.loop_radius_m)
+    cand: list[int] = []
+    for c in near[np.argsort(dist[near], kind="stable")].tolist():
+        if all(abs(c - o) > cfg.loop_map_keyframes for o in cand):
+            cand.append(c)
+        if len(cand) == cfg.loop_candidates:
+            break
+    return cand
+
+
 def enqueue(queue: deque[tuple[int, int, Array, int, bool, bool]],
             entry: tuple[int, int, Array, int, bool, bool]) -> None:
-    """Insert a loop candidate (old kf, new kf, poses, due scan, wide retry?, may it be retried?) into ``queue`` in the order (due scan,
-    first search before wide retry, arrival): the order decisions are made in, which no stage timing may move."""
+    """Insert a loop candidate (old kf, new kf, poses, due scan, wide retry?, may it be retried?) into ``queue`` in
+    the order (due scan, first search before wide retry, arrival): the order decisions are made in, which no stage
+    timing may move."""
     at = next((i for i, e in enumerate(queue) if (e[3], e[4]) > (entry[3], entry[4])), len(queue))
     queue.insert(at, entry)
 
