@@ -6,9 +6,9 @@ from the saved map at random unknown poses and must relocalise.
 2. flights 2 and 3 (``warehouse.flight=1, 2``: a fraction of the pallets moved each time): ``--starts`` random start
    steps along each flight's route; from each, the relocaliser gets ``--budget-s`` seconds of motion (odometry,
    lidar, and floor markers or not) against the saved map. Reported: success rate (accepted within the budget and
-   right), WRONG acceptances (error > 0.5 m or > 5 deg: must be 0; also counted in the map's frame,
-   ``wrong_in_map``: a pose right in a map that flight 1 drew with drift is off the truth by that drift), time
-   to decide;
+   right in the map's frame), WRONG acceptances (error > 0.5 m or > 5 deg in the map's frame: must be 0), how many
+   accepted poses are > 0.5 m from the truth itself (``off_truth``: a pose right in a map that flight 1 drew with
+   drift is off the truth by that drift), time to decide;
 3. the whole of flights 2 and 3 as lidar sessions from the previous flight's saved map (relocalise, then localise and
    map): the static layers of consecutive flights compared cell by cell (occupied cells, IoU; also over only the
    cells both flights observed), and against the truth: the pallet faces that differ between the two flights'
@@ -225,12 +225,15 @@ def trials(prior: MapSnapshot, cfg: ScenarioConfig, seed: int, starts: int, budg
 
 
 def summarise(rows: list[dict[str, Any]], markers: bool) -> dict[str, Any]:
+    """A relocalisation is right when it is right in the map's frame (the truth carried into it by the one rigid
+    transform of :func:`map_frame`): a map is drawn in a frame of its own, and evo's ATE aligns once too. How many
+    accepted poses are more than WRONG_M from the truth itself (``off_truth``) is reported beside it."""
     r = [x for x in rows if x["markers"] == markers]
-    ok = [x for x in r if x["decided"] and not x["wrong"]]
+    decided = [x for x in r if x["decided"]]
+    ok = [x for x in decided if x["map_error_m"] <= WRONG_M and x["map_error_deg"] <= WRONG_DEG]
     return {"starts": len(r), "success": len(ok), "success_rate": len(ok) / max(len(r), 1),
-            "wrong": sum(x["wrong"] for x in r), "undecided": sum(not x["decided"] for x in r),
-            "wrong_in_map": sum(x["decided"] and (x["map_error_m"] > WRONG_M or x["map_error_deg"] > WRONG_DEG)
-                                for x in r),
+            "wrong": len(decided) - len(ok), "undecided": len(r) - len(decided),
+            "off_truth": sum(x["wrong"] for x in decided),
             "decide_s_median": float(np.median([x["time_s"] for x in ok])) if ok else float("nan"),
             "decide_s_max": float(np.max([x["time_s"] for x in ok])) if ok else float("nan"),
             "error_m_max": float(np.max([x["error_m"] for x in ok])) if ok else float("nan"),
@@ -241,7 +244,7 @@ def summarise(rows: list[dict[str, Any]], markers: bool) -> dict[str, Any]:
 
 
 def print_table(table: list[dict[str, Any]]) -> None:
-    cols = ["flight", "markers", "starts", "success", "success_rate", "wrong", "wrong_in_map", "undecided",
+    cols = ["flight", "markers", "starts", "success", "success_rate", "wrong", "undecided", "off_truth",
             "decide_s_median", "decide_s_max", "error_m_max", "error_m_median", "map_error_m_median",
             "map_error_deg_median", "cpu_s_per_start"]
     print("  ".join(f"{c:>20s}" for c in cols))

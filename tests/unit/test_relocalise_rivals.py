@@ -1,9 +1,12 @@
 """The relocaliser's rival check: an exhaustive search of the whole map for the best distinct explanation of the
-evidence, and the robust margin (a win that rests on a few objects is no proof without a marker).
+evidence, the map's symmetric twins, and the robust margin (a win that rests on a few objects is no proof without a
+marker).
 
 The FFT search is checked against a direct sum over every pose of its grid; the half-turn symmetric room of
 test_relocalise.py, mapped on one half only (so no keyframe seeds the mirror image), must stay undecided without
-markers and accept the right pose with them; an asymmetric room accepts without markers.
+markers and accept the right pose with them; an asymmetric room accepts without markers. The map's rotational
+self-matches are checked against an exhaustive count over every shift, and the twin rule alone (no search) must keep
+the symmetric room undecided.
 """
 
 import numpy as np
@@ -12,7 +15,7 @@ from scipy import ndimage
 from test_relocalise import ANGLES, MARKERS, room_map
 
 from slam2d.frontend.relocalise import RelocaliseConfig, Relocaliser
-from slam2d.frontend.relocalise_search import CorrelativeSearch
+from slam2d.frontend.relocalise_search import CorrelativeSearch, rotational_self_matches
 from slam2d.geometry import se2
 from slam2d.log import MarkerReadings, Observations, Scan, Step
 from slam2d.maps.store import MapSnapshot
@@ -83,16 +86,49 @@ def test_fft_search_equals_a_direct_sum_over_every_pose():
     np.testing.assert_allclose(best[:3], top[1], atol=1e-9)
 
 
-@pytest.mark.parametrize("rival_search", [False, True])
-def test_mirror_never_seeded_needs_the_rival_search_to_stay_undecided(rival_search):
+def test_self_matches_equal_an_exhaustive_count_over_every_shift():
+    rng = np.random.default_rng(5)
+    occ = rng.random((14, 18)) < 0.15
+    origin = np.array([0.35, -1.2])
+    got = rotational_self_matches(occ, origin, 0.1, 0.1)
+    iy, ix = np.nonzero(occ)
+    p = origin + (np.stack([ix, iy], -1) + 0.5) * 0.1
+
+    def hits(q):  # occupied cells under world points q
+        j = np.floor((q - origin) / 0.1).astype(int)
+        ok = (j[:, 0] >= 0) & (j[:, 0] < 18) & (j[:, 1] >= 0) & (j[:, 1] < 14)
+        return int(occ[j[ok, 1], j[ok, 0]].sum())
+
+    assert got[:, 0] == pytest.approx([np.pi / 2, np.pi, 3 * np.pi / 2])
+    for phi, tx, ty, overlap in got:
+        r = np.array([[np.cos(phi), -np.sin(phi)], [np.sin(phi), np.cos(phi)]])
+        turned = p @ r.T
+        best = max(hits(turned + np.array([tx, ty]) + 0.1 * np.array([dx, dy]))
+                   for dx in range(-40, 41) for dy in range(-40, 41))  # every shift by whole cells
+        assert overlap == pytest.approx(best / len(p))
+        assert hits(turned + np.array([tx, ty])) == best
+
+
+def test_the_symmetric_rooms_half_turn_is_found_and_the_asymmetric_one_matches_itself_worse():
+    sym, asym = (_room(w, False, False) for w in (SYMMETRIC, ASYMMETRIC))
+    rows = [rotational_self_matches(s.occupancy_logodds > 0, s.occupancy_origin, 0.05, 0.2) for s in (sym, asym)]
+    phi, tx, ty, overlap = rows[0][1]
+    assert phi == pytest.approx(np.pi)
+    np.testing.assert_allclose([tx, ty], [20.0, 10.0], atol=0.21)  # T(p) = -p + 2 * centre, one coarse cell
+    assert overlap > 0.95 and rows[1][1, 3] < overlap - 0.1
+
+
+@pytest.mark.parametrize(("rival_search", "twin_rivals"), [(False, False), (True, False), (False, True)])
+def test_mirror_never_seeded_needs_the_rival_search_or_the_twin_to_stay_undecided(rival_search, twin_rivals):
     snap = _room(SYMMETRIC, with_markers=False, left_half_only=True)
     steps, truth = _drive(SYMMETRIC, [3.0, 2.0, 0.0])
-    rel = Relocaliser(snap, RelocaliseConfig(rival_search=rival_search), rng=np.random.default_rng(0))
+    rel = Relocaliser(snap, RelocaliseConfig(rival_search=rival_search, twin_rivals=twin_rivals),
+                      rng=np.random.default_rng(0))
     k, status = _run(rel, steps)
-    if rival_search:
+    if rival_search or twin_rivals:
         assert k is None, "accepted a pose in a half-turn symmetric room without markers"
-        assert rel.rival_searches >= 1
-    else:  # without the search the mirror is never a hypothesis and the scans "decide": the test can fail
+        assert rel.rival_searches >= 1 or not rival_search
+    else:  # neither: the mirror is never a hypothesis and the scans "decide": the test can fail
         assert k is not None
 
 
@@ -103,6 +139,9 @@ def test_mirror_room_with_markers_accepts_the_right_pose():
     assert k is not None, "never decided although marker 0 was read"
     e = se2.local(truth[k], status.pose)
     assert np.hypot(e[0], e[1]) < 0.1 and abs(e[2]) < 0.02
+    # a marker-confirmed winner skips the twin rule: the same decision without it
+    k2, status2 = _run(Relocaliser(snap, RelocaliseConfig(twin_rivals=False), rng=np.random.default_rng(0)), steps)
+    assert k2 == k and np.array_equal(status2.pose, status.pose)
 
 
 def test_asymmetric_room_accepts_without_markers():

@@ -27,14 +27,17 @@ the window agrees with it, (4) the rival check passes: an exhaustive search of t
 explanations of the evidence window (:mod:`slam2d.frontend.relocalise_search`; the tracked hypotheses came from
 descriptors and markers, so a mirror-image place no candidate seeded was simply missing and rule (2) held
 trivially) adds its best distinct peaks, refined on the window, to the hypotheses, and the winner must still lead
-them by ``accept_margin``, (5) without a marker confirming it, the lead must survive leaving out the
+them by ``accept_margin``; without a marker confirming the winner, so must its images under the map's own quarter,
+half and three-quarter turn (``twin_rivals``: the coarse search can rank the half-turn twin below ten look-alikes
+in a large warehouse), (5) without a marker confirming it, the lead must survive leaving out the
 ``robust_objects`` places (``robust_cell_m`` cells) that favour the winner most: in a self-similar warehouse two
 places differ by pallets and forklifts, which is what moves between flights, and (6) a verification passes: ICP of
 the current scan against the map's occupied cells converges near it with enough inliers. Otherwise the status is
 "undecided" and it keeps trying (new candidates are injected every ``inject_every`` evidence scans). In a perfectly
 symmetric place two hypotheses keep equal scores and nothing is ever accepted. Measured on the small benchmark
 warehouse (half-turn symmetric racks, forklifts, moved pallets; ``benchmarks/warehouse_flights.py``): rules (1)-(3)
-and (6) alone accepted the mirror-image place in 1 and 3 of 20 starts without markers; with (4) and (5), none.
+and (6) alone accepted the mirror-image place in 1 and 3 of 20 starts without markers; with (4) and (5), none. In
+the 100 x 100 m one (``--full``) two starts still accepted the half-turn twin; with ``twin_rivals``, none.
 """
 
 from __future__ import annotations
@@ -44,11 +47,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 
 from slam2d.config import check_positive
 from slam2d.frontend.icp import ICPConfig, icp, prepare_target
-from slam2d.frontend.relocalise_search import CorrelativeSearch
+from slam2d.frontend.relocalise_search import CorrelativeSearch, LikelihoodField, rotational_self_matches
 from slam2d.geometry import se2
 from slam2d.geometry.angles import wrap_angle
 from slam2d.log import Step
@@ -163,6 +165,12 @@ class RelocaliseConfig:
     """size of the places of ``robust_objects`` (m, about a pallet bay)."""
     robust_rivals: int = 20
     """distinct hypotheses (best first) the robust margin is checked against."""
+    twin_rivals: bool = True
+    """without a floor-marker confirmation, the winner's images under the map's rotational self-matches
+    (:func:`~slam2d.frontend.relocalise_search.rotational_self_matches`: a quarter, half and three-quarter turn),
+    hill-climbed on the window, join the hypotheses before rule (5), so the winner must beat its symmetric twin by
+    ``accept_margin``, also with the ``robust_objects`` places left out. The rival search ranks its peaks on a
+    coarse field and can miss that twin in a large warehouse (measured: benchmarks/warehouse_flights.py --full)."""
 
     def __post_init__(self) -> None:
         check_positive(self, "sigma_m", "likelihood_floor", "scan_weight", "evidence_every_m", "evidence_every_rad",
@@ -201,46 +209,6 @@ class RelocaliseStatus:
     information: Array | None = None
 
 
-class LikelihoodField:
-    """``log(exp(-d^2 / 2 sigma^2) + floor)`` of the static layer's occupied cells, looked up for many points."""
-
-    def __init__(self, snapshot: MapSnapshot, config: RelocaliseConfig) -> None:
-        lo = snapshot.occupancy_logodds.astype(np.float64)
-        thr = np.log(config.occupied_probability / (1 - config.occupied_probability))
-        self.occupied = lo > thr
-        self.origin = snapshot.occupancy_origin.astype(np.float64)
-        self.res = float(snapshot.occupancy_resolution_m)
-        d = np.asarray(ndimage.distance_transform_edt(~self.occupied), dtype=np.float64) * self.res
-        self.table = np.log(np.exp(-0.5 * (d / config.sigma_m) ** 2) + config.likelihood_floor).astype(np.float32)
-        self.outside = float(np.log(config.likelihood_floor))
-        iy, ix = np.nonzero(self.occupied)
-        self.points = self.origin + (np.stack([ix, iy], axis=-1) + 0.5) * self.res
-
-    def _cells(self, xy: Array) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.bool_]]:
-        ix = np.floor((xy[..., 0] - self.origin[0]) / self.res).astype(np.int64)
-        iy = np.floor((xy[..., 1] - self.origin[1]) / self.res).astype(np.int64)
-        ny, nx = self.table.shape
-        ok = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
-        return np.clip(iy, 0, ny - 1), np.clip(ix, 0, nx - 1), ok
-
-    def __call__(self, xy: Array) -> Array:
-        """Log-likelihood of world points (..., 2) -> (...)."""
-        iy, ix, ok = self._cells(xy)
-        return np.where(ok, self.table[iy, ix].astype(np.float64), self.outside)
-
-    def through(self, origin: Array, xy: Array, margin_m: float) -> NDArray[np.bool_]:
-        """Does the segment from ``origin`` (..., 2) to each endpoint ``xy`` (..., B, 2), stopped ``margin_m``
-        short, cross an occupied cell? Checked at 4 points along it. -> (..., B)."""
-        d = xy - origin[..., None, :]
-        r = np.hypot(d[..., 0], d[..., 1])
-        scale = np.maximum(r - margin_m, 0.0) / np.maximum(r, 1e-9)
-        hit = np.zeros(xy.shape[:-1], dtype=bool)
-        for f in (0.25, 0.5, 0.75, 1.0):  # four samples, each one array operation over every beam
-            iy, ix, ok = self._cells(origin[..., None, :] + (f * scale)[..., None] * d)
-            hit |= ok & self.occupied[iy, ix]
-        return hit
-
-
 def _scan_xy(ranges: Array, angles: Array, max_range: float,
              idx: NDArray[np.intp]) -> tuple[Array, NDArray[np.bool_]]:
     """Subsampled beam endpoints (len(idx), 2) in the robot frame and their validity mask (hit, finite)."""
@@ -262,7 +230,8 @@ class Relocaliser:
         self.config = cfg = config or RelocaliseConfig()
         self.map = snapshot
         self.rng = rng  # candidate generation is deterministic today; kept for subsampling ties
-        self.field = LikelihoodField(snapshot, cfg)
+        self.field = LikelihoodField(snapshot, sigma_m=cfg.sigma_m, floor=cfg.likelihood_floor,
+                                     occupied_probability=cfg.occupied_probability)
         self._icp_target = prepare_target(self.field.points, cfg.icp) if len(self.field.points) else None
         f = self.field
         self._search = CorrelativeSearch(
@@ -270,6 +239,8 @@ class Relocaliser:
             floor=cfg.likelihood_floor, reach_m=cfg.rival_reach_m, headings=cfg.rival_headings) \
             if cfg.rival_search and f.occupied.any() else None
         self.rival_searches = 0
+        self._twins = rotational_self_matches(f.occupied, f.origin, f.res, cfg.rival_cell_m) \
+            if cfg.twin_rivals and f.occupied.any() else np.zeros((0, 4))
         self._searched_at = -(10**9)  # evidence count of the last rival search
         self.robust_margin = float("nan")  # of the last decision that reached the robust check
         markers = snapshot.layers.get("floor_markers")
@@ -400,6 +371,14 @@ class Relocaliser:
             return peaks
         return self._climb(peaks, lambda c: self._window_score(c.reshape(-1, 3)).reshape(c.shape[:-1]),
                            cfg.refine_rounds + 1)
+
+    def _twin_rivals(self, best: Array) -> Array:
+        """``best`` carried by each of the map's rotational self-matches, hill-climbed on the window (T,3)."""
+        phi, c, s = self._twins[:, 0], np.cos(self._twins[:, 0]), np.sin(self._twins[:, 0])
+        twins = np.stack([c * best[0] - s * best[1] + self._twins[:, 1], s * best[0] + c * best[1] + self._twins[:, 2],
+                          wrap_angle(best[2] + phi)], axis=-1)
+        return self._climb(twins, lambda c: self._window_score(c.reshape(-1, 3)).reshape(c.shape[:-1]),
+                           self.config.refine_rounds + 1)
 
     def _window_score(self, hyp: Array) -> Array:
         """Score of every hypothesis on the whole evidence window (and the buffered marker readings)."""
@@ -543,6 +522,21 @@ class Relocaliser:
         per = -np.sort(-per, axis=1)
         return float(per[:, cfg.robust_objects:].sum(axis=1).min())
 
+    def _join(self, rivals: Array, best: Array, n_ev: int) -> RelocaliseStatus | None:
+        """``rivals`` join the hypotheses (tracked from now on); "undecided" unless ``best`` still leads every distinct
+        one by ``accept_margin`` (None: it does)."""
+        cfg = self.config
+        if not len(rivals):
+            return None
+        self.hyp, self.score = self._merge(np.vstack([self.hyp, rivals]),
+                                           np.concatenate([self.score, self._window_score(rivals)]))
+        margin = self._margin()
+        moved = se2.between(best, self.hyp[0])
+        if margin < cfg.accept_margin or np.hypot(moved[0], moved[1]) > cfg.distinct_xy_m \
+                or abs(moved[2]) > cfg.distinct_theta_rad:
+            return RelocaliseStatus(False, self.hyp[0].copy(), margin, len(self.hyp), n_ev)
+        return None
+
     def _decide(self, step: Step, ranges: Array, angles: Array, max_range: float) -> RelocaliseStatus:
         cfg = self.config
         n_ev = len(self._ev_odo)
@@ -557,15 +551,13 @@ class Relocaliser:
                                          or not np.isfinite(margin)):
             self._searched_at = self.evidence_count
             # the rivals join the hypotheses (tracked from now on); the winner must beat them too
-            rivals = self._rivals(best)
-            if len(rivals):
-                self.hyp, self.score = self._merge(np.vstack([self.hyp, rivals]),
-                                                   np.concatenate([self.score, self._window_score(rivals)]))
-                margin = self._margin()
-                moved = se2.between(best, self.hyp[0])
-                if margin < cfg.accept_margin or np.hypot(moved[0], moved[1]) > cfg.distinct_xy_m \
-                        or abs(moved[2]) > cfg.distinct_theta_rad:
-                    return RelocaliseStatus(False, self.hyp[0].copy(), margin, len(self.hyp), n_ev)
+            refused = self._join(self._rivals(best), best, n_ev)
+            if refused is not None:
+                return refused
+        if not self._marker_agrees(best) and len(self._twins):
+            refused = self._join(self._twin_rivals(best), best, n_ev)
+            if refused is not None:
+                return refused
         if cfg.robust_objects > 0 and not self._marker_agrees(best):
             self.robust_margin = self._robust_margin()
             if self.robust_margin < cfg.accept_margin:
