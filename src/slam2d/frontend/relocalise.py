@@ -374,8 +374,9 @@ class Relocaliser:
 
     def _twin_rivals(self, best: Array) -> Array:
         """``best`` carried by each of the map's rotational self-matches, hill-climbed on the window (T,3)."""
-        phi, c, s = self._twins[:, 0], np.cos(self._twins[:, 0]), np.sin(self._twins[:, 0])
-        twins = np.stack([c * best[0] - s * best[1] + self._twins[:, 1], s * best[0] + c * best[1] + self._twins[:, 2],
+        phi, tx, ty = self._twins[:, 0], self._twins[:, 1], self._twins[:, 2]
+        cos, sin = np.cos(phi), np.sin(phi)
+        twins = np.stack([cos * best[0] - sin * best[1] + tx, sin * best[0] + cos * best[1] + ty,
                           wrap_angle(best[2] + phi)], axis=-1)
         return self._climb(twins, lambda c: self._window_score(c.reshape(-1, 3)).reshape(c.shape[:-1]),
                            self.config.refine_rounds + 1)
@@ -554,11 +555,12 @@ class Relocaliser:
             refused = self._join(self._rivals(best), best, n_ev)
             if refused is not None:
                 return refused
-        if not self._marker_agrees(best) and len(self._twins):
+        confirmed = self._marker_agrees(best)
+        if not confirmed and len(self._twins):
             refused = self._join(self._twin_rivals(best), best, n_ev)
             if refused is not None:
                 return refused
-        if cfg.robust_objects > 0 and not self._marker_agrees(best):
+        if cfg.robust_objects > 0 and not confirmed:
             self.robust_margin = self._robust_margin()
             if self.robust_margin < cfg.accept_margin:
                 return RelocaliseStatus(False, best.copy(), margin, len(self.hyp), n_ev)
