@@ -214,6 +214,7 @@ def trials(prior: MapSnapshot, cfg: ScenarioConfig, seed: int, starts: int, budg
                     e = se2.local(log.true_poses[st.index], status.pose)
                     row.update(decided=True, time_s=st.time_s - steps[s].time_s + float(st.dt_s),
                                error_m=float(np.hypot(e[0], e[1])), error_deg=float(np.degrees(abs(e[2]))))
+                    # against the unaligned truth (summarise counts it as off_truth; wrong is judged in the map's frame)
                     row["wrong"] = row["error_m"] > WRONG_M or row["error_deg"] > WRONG_DEG
                     em = se2.local(se2.compose(frame, log.true_poses[st.index]), status.pose)
                     row.update(map_error_m=float(np.hypot(em[0], em[1])), map_error_deg=float(np.degrees(abs(em[2]))))

@@ -71,6 +71,16 @@ class LikelihoodField:
         return hit
 
 
+def pooled(occupied: NDArray[np.bool_], res_m: float, coarse_m: float) -> tuple[NDArray[np.bool_], float]:
+    """``occupied`` pooled to cells of a whole multiple of ``res_m`` near ``coarse_m`` (a coarse cell is occupied when
+    any of its cells is; same corner), and that cell's size."""
+    f = max(round(coarse_m / res_m), 1)
+    ny, nx = occupied.shape
+    py, px = -ny % f, -nx % f
+    occ = np.pad(occupied, ((0, py), (0, px))).reshape((ny + py) // f, f, (nx + px) // f, f).any(axis=(1, 3))
+    return np.asarray(occ, dtype=bool), res_m * f
+
+
 class CorrelativeSearch:
     """Scores a robot-frame point set at every pose of a coarse grid over the map (see the module docstring).
 
@@ -81,11 +91,7 @@ class CorrelativeSearch:
 
     def __init__(self, occupied: NDArray[np.bool_], origin: Array, res_m: float, *, coarse_m: float, sigma_m: float,
                  floor: float, reach_m: float, headings: int) -> None:
-        f = max(round(coarse_m / res_m), 1)
-        ny, nx = occupied.shape
-        py, px = -ny % f, -nx % f
-        occ = np.pad(occupied, ((0, py), (0, px))).reshape((ny + py) // f, f, (nx + px) // f, f).any(axis=(1, 3))
-        self.res = res_m * f
+        occ, self.res = pooled(occupied, res_m, coarse_m)
         self.origin = np.asarray(origin, dtype=np.float64)
         d = np.asarray(ndimage.distance_transform_edt(~occ), dtype=np.float64) * self.res
         # minus the value outside the map, so that the zero padding of the FFT is "outside"
@@ -140,11 +146,7 @@ def rotational_self_matches(occupied: NDArray[np.bool_], origin: Array, res_m: f
 
     Occupied cells are pooled to cells of about ``coarse_m`` (a map drawn with drift is not exactly symmetric);
     each turn's best translation is one FFT correlation of the map with its turned cell centres."""
-    f = max(round(coarse_m / res_m), 1)
-    ny, nx = occupied.shape
-    py, px = -ny % f, -nx % f
-    occ = np.pad(occupied, ((0, py), (0, px))).reshape((ny + py) // f, f, (nx + px) // f, f).any(axis=(1, 3))
-    res = res_m * f
+    occ, res = pooled(occupied, res_m, coarse_m)
     iy, ix = np.nonzero(occ)
     if not len(iy):
         return np.zeros((0, 4))
