@@ -9,6 +9,11 @@ measure how well the two raw scans then overlap: the fraction of t2's points wit
 not. For the short ones the same is measured with the logged odometry's relative pose instead of the relation (a
 reference that drifts but is locally decent). Also counted: relations whose (x, y) equals the logged odometry's
 relative translation to 5 decimals (a relation copied from odometry).
+
+For the relations under 1 s apart, the translation error (as in the relation metric) of two estimates that use no
+trajectory: the logged odometry's relative pose, and a direct point-to-line ICP of the two raw scans from that
+guess (the lidar back end's tracking settings). The second says how well the file's short relations agree with
+the scans themselves: a SLAM estimate scored on them is compared with it in the README.
 """
 
 from __future__ import annotations
@@ -17,7 +22,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from slam2d.eval.relations import match_stamps, read_relations
+from slam2d.frontend.icp import icp
 from slam2d.geometry import se2
+from slam2d.graph.lidar_config import LidarSLAMConfig
 from slam2d.io.carmen import read_carmen, relations_beside, resolve_carmen
 
 
@@ -61,6 +68,22 @@ def check(name: str) -> None:
         print(f"{'':10s} long relations {long.sum():4d}: scan inliers under the relation median "
               f"{np.median(by_long):.2f} (p10 {np.percentile(by_long, 10):.2f}); "
               f"below 0.3: {int(np.sum(by_long < 0.3))}")
+    sub = np.abs(rel.stamps[short, 1] - rel.stamps[short, 0]) < 1.0
+    cfg = LidarSLAMConfig()
+
+    def scan(i: int) -> np.ndarray:
+        return points(c.ranges_m[i], c.angles_rad, cfg.max_range_m)
+
+    pair = np.array([icp(scan(b), scan(a), initial=t, config=cfg.icp).transform
+                     for a, b, t in zip(i1[sub], i2[sub], odo[sub], strict=True)]).reshape(-1, 3)
+    e_pair = np.hypot(*(pair[:, :2] - z[sub, :2]).T)
+    e_odo = np.hypot(*(odo[sub, :2] - z[sub, :2]).T)
+    if sub.any():
+        cs = copied[sub]
+        split = [float(np.mean(e_pair[m])) if m.any() else float("nan") for m in (cs, ~cs)]
+        print(f"{'':10s} under 1 s {sub.sum():4d}: translation error of raw-scan ICP mean {e_pair.mean():.4f} m "
+              f"(median {np.median(e_pair):.4f}; the {cs.sum()} copied from odometry {split[0]:.4f}, the others "
+              f"{split[1]:.4f}), of odometry mean {e_odo.mean():.4f} m (median {np.median(e_odo):.4f})")
     if copied.any():
         print(f"{'':10s} copied ones: inliers under the relation median {np.median(by_rel[copied]):.2f}, under "
               f"odometry {np.median(by_odo[copied]):.2f}; |yaw(relation) - yaw(odometry)| median "
