@@ -119,9 +119,9 @@ class LidarSLAMConfig:
     """coarse translation step of that wider search, in ``correlative.resolution_m`` cells."""
     loop_retry_stride: int = 3
     """that wider search matches every this many points of the scan (its ICP refinement all of them)."""
-    loop_retry_stages: int = 3
+    loop_retry_stages: int = 6
     """that wider search runs as this many verification stages (its coarse scores split by rotation), so that it
-    costs a scan no more than the first search does."""
+    costs a scan no more than the first search does (6 with ``loop_search_stages``, see there)."""
     loop_wide_window_m: float = 0.0
     """a loop that passed every gate is searched again over +- this window (coarse only) and rejected when another
     alignment there scores ``loop_wide_max_ambiguity`` of the best: identical aisles farther apart than the
@@ -169,9 +169,12 @@ class LidarSLAMConfig:
     work); two stages per scan put two 15-25 ms searches into one scan (p99 57 ms). Going by the cost of the last
     stages (no stage unless the longest of the last 16 still fits, none forced) ran fewer: more candidates were
     finished at once (p99 71 ms). 25 ms: p99 34-35 ms with and without the retry; 20: 30-32 ms."""
-    loop_search_stages: int = 3
-    """a first search's correlative scores run as this many verification stages (split by rotation; 4-6 ms each
-    on mit-csail, where the whole search took 15 ms and a passing candidate's ICP another 14 ms)."""
+    loop_search_stages: int = 6
+    """a first search's correlative scores run as this many verification stages (split by rotation). Results do not
+    depend on it, latency does: a stage begun just under ``loop_budget_ms`` runs past it by its own length. At 3
+    (4-6 ms a stage on mit-csail on 2026-12-02's VM) mit-csail's CPU p99 was 29 ms that day, 44-60 ms on the slower
+    VM of 2026-12-03; 6 here and in ``loop_retry_stages`` gave 31-37 ms there, fr079 unchanged (34-37 ms against
+    34-35 ms, runs alternated; ``benchmarks/lidar_backend.py``)."""
     loop_queue: int = 16
     """the delay, in scans, from queueing a candidate to its decision entering the graph: fixed, so that results
     do not depend on when within that delay the candidate was verified. Also at most this many candidates are in
