@@ -69,16 +69,16 @@ def check(name: str) -> None:
               f"{np.median(by_long):.2f} (p10 {np.percentile(by_long, 10):.2f}); "
               f"below 0.3: {int(np.sum(by_long < 0.3))}")
     sub = np.abs(rel.stamps[short, 1] - rel.stamps[short, 0]) < 1.0
-    cfg = LidarSLAMConfig()
-
-    def scan(i: int) -> np.ndarray:
-        return points(c.ranges_m[i], c.angles_rad, cfg.max_range_m)
-
-    pair = np.array([icp(scan(b), scan(a), initial=t, config=cfg.icp).transform
-                     for a, b, t in zip(i1[sub], i2[sub], odo[sub], strict=True)]).reshape(-1, 3)
-    e_pair = np.hypot(*(pair[:, :2] - z[sub, :2]).T)
-    e_odo = np.hypot(*(odo[sub, :2] - z[sub, :2]).T)
     if sub.any():
+        cfg = LidarSLAMConfig()
+
+        def scan(i: int) -> np.ndarray:
+            return points(c.ranges_m[i], c.angles_rad, cfg.max_range_m)
+
+        pair = np.array([icp(scan(b), scan(a), initial=t, config=cfg.icp).transform
+                         for a, b, t in zip(i1[sub], i2[sub], odo[sub], strict=True)])
+        e_pair = np.hypot(*(pair[:, :2] - z[sub, :2]).T)  # the relation metric's translation error
+        e_odo = np.hypot(*(odo[sub, :2] - z[sub, :2]).T)
         cs = copied[sub]
         split = [float(np.mean(e_pair[m])) if m.any() else float("nan") for m in (cs, ~cs)]
         print(f"{'':10s} under 1 s {sub.sum():4d}: translation error of raw-scan ICP mean {e_pair.mean():.4f} m "
