@@ -89,6 +89,19 @@ def test_normals_on_a_line() -> None:
     assert np.allclose(np.abs(n @ np.array([1.0, 2.0]) / np.sqrt(5)), 0, atol=1e-9)
 
 
+@pytest.mark.parametrize("k", [2, 5, 8])
+def test_normals_are_the_least_eigenvectors_of_the_neighbourhood_scatter(rng: np.random.Generator, k: int) -> None:
+    from scipy.spatial import cKDTree
+
+    p = rng.uniform(-3, 3, size=(300, 2))
+    _, idx = cKDTree(p).query(p, k=k)
+    nb = p[idx] - p[idx].mean(axis=1, keepdims=True)
+    vec = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb))[1][:, :, 0]  # the textbook computation
+    n = estimate_normals(p, k)
+    assert np.allclose(np.abs(np.einsum("ni,ni->n", n, vec)), 1.0, atol=1e-12)  # same line, either sign
+    assert np.allclose(np.hypot(n[:, 0], n[:, 1]), 1.0)
+
+
 def test_covariance_shrinks_with_noise_and_flags_corridor_degeneracy(rng: np.random.Generator) -> None:
     src, tgt, t_true = random_case(rng)
     lo = icp(src, tgt).covariance

@@ -30,6 +30,23 @@ def test_incremental_tracks_the_batch_optimum_and_finishes_on_it():
     assert final == pytest.approx(batch.chi2_final, rel=1e-6)
 
 
+def test_repeated_full_solves_reuse_one_analysis_and_equal_fresh_ones():
+    syn = manhattan_walk(np.random.default_rng(7), num_poses=120)
+    block = syn.graph.block("between")
+    inc = IncrementalPoseGraph(syn.initial.poses[0], IncrementalConfig(window=10, full_every=1000))
+    _feed(block, inc, 120)
+    graph = inc.graph()
+    for _ in range(3):  # the solves that follow a loop, one per scan, with nothing added in between
+        fresh, _ = optimize(graph, Values(np.arange(120), inc.poses), OptimizerConfig(method="gn", max_iterations=1))
+        inc.solve_full(1)
+        assert np.allclose(inc.poses, fresh.poses, rtol=0, atol=1e-12)
+    assert inc._full is not None and inc._full[1].analyses_done == 1
+    z, info = np.array([[1.0, 0.0, 0.0]]), np.eye(3)[None] * 10
+    inc.add_step(120, np.array([119]), np.array([120]), z, info)  # a new pose: a new analysis
+    inc.solve_full(1)
+    assert inc._full[1].analyses_done == 1 and inc._full[0][:2] == (121, inc.num_edges)
+
+
 def test_incremental_rejects_out_of_order_input():
     inc = IncrementalPoseGraph(np.zeros(3))
     z, info = np.array([[1.0, 0.0, 0.0]]), np.eye(3)[None] * 10

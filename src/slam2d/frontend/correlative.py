@@ -16,6 +16,7 @@ best fine score. Every level is one array operation over all candidate poses: sh
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Generator
 from dataclasses import dataclass
 from typing import TypeVar
@@ -100,13 +101,41 @@ def _likelihood(points: Array, lo: Array, shape: tuple[int, int], cfg: Correlati
     ij = np.floor((points - lo) / res).astype(np.int64) - np.asarray(first, dtype=np.int64)
     inside = (ij[:, 0] >= 0) & (ij[:, 0] < shape[1]) & (ij[:, 1] >= 0) & (ij[:, 1] < shape[0])
     occ[ij[inside, 1], ij[inside, 0]] = False
-    d = np.asarray(ndimage.distance_transform_edt(occ), dtype=np.float64) * res
-    fine = np.exp(-0.5 * (d / cfg.sigma_m) ** 2)
+    # squared distance in cells (an integer) to the nearest target point, then the likelihood from a table of its
+    # values: the same numbers as exp(-d^2 / 2 sigma^2) of the distance transform, without an exp per cell
+    near = ndimage.distance_transform_edt(occ, return_distances=False, return_indices=True)
+    dy = near[0] - np.arange(shape[0], dtype=near.dtype)[:, None]
+    dx = near[1] - np.arange(shape[1], dtype=near.dtype)[None, :]
+    d2 = dy * dy + dx * dx
+    table = _likelihood_table(res, cfg.sigma_m)
+    ny, nx = shape
     c = cfg.coarse_cells
-    # max over the block [i, i+c) x [j, j+c): a maximum filter shifted so that the block starts at the cell
-    coarse = ndimage.maximum_filter(fine, size=c, origin=-(c // 2), mode="constant", cval=0.0)
-    return _Grids(np.pad(fine.astype(np.float32), pad).ravel(), np.pad(coarse.astype(np.float32), pad).ravel(),
-                  lo, shape, pad, first)
+    pad = max(pad, c)  # the coarse maxima below read c - 1 cells past the grid
+    fine = np.zeros((ny + 2 * pad, nx + 2 * pad), dtype=np.float32)
+    fine[pad:pad + ny, pad:pad + nx] = table[np.minimum(d2, len(table) - 1)]
+    # coarse: the max over the block [i, i+c) x [j, j+c) of fine cells, as c shifted maxima along each axis (the
+    # zero border is the 0 outside the grid)
+    rows = fine[pad:pad + ny, pad:pad + nx + c - 1].copy()
+    for k in range(1, c):
+        np.maximum(rows, fine[pad + k:pad + k + ny, pad:pad + nx + c - 1], out=rows)
+    coarse = np.zeros_like(fine)
+    block = coarse[pad:pad + ny, pad:pad + nx]
+    block[...] = rows[:, :nx]
+    for k in range(1, c):
+        np.maximum(block, rows[:, k:k + nx], out=block)
+    return _Grids(fine.ravel(), coarse.ravel(), lo, shape, pad, first)
+
+
+@functools.lru_cache(maxsize=8)
+def _likelihood_table(res: float, sigma: float) -> NDArray[np.float32]:
+    """exp(-d^2 / 2 sigma^2) as float32 for d = sqrt(k) cells, k = 0, 1, ... up to the first k where it is 0 (at
+    ``_ZERO_SIGMAS`` sigma at the latest): every squared distance beyond reads that last 0."""
+    k = np.arange(int(np.ceil((_ZERO_SIGMAS * sigma / res) ** 2)) + 1)
+    d = np.sqrt(k.astype(np.float64)) * res
+    table = np.exp(-0.5 * (d / sigma) ** 2).astype(np.float32)
+    table = table[: np.flatnonzero(table == 0)[0] + 1]  # 0 in float32 at _ZERO_SIGMAS sigma: exp(-112.5) < 1e-45
+    table.flags.writeable = False
+    return table
 
 
 def _scores(grid: NDArray[np.float32], g: _Grids, pts: Array, thetas: Array, origin: Array, off_x: NDArray[np.int64],

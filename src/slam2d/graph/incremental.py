@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from slam2d.geometry import se2
 from slam2d.graph.graph import FactorGraph, Values
-from slam2d.graph.optimizer import Optimizer, OptimizerConfig, Summary, optimize
+from slam2d.graph.optimizer import Optimizer, OptimizerConfig, Summary
 
 Array = NDArray[np.float64]
 
@@ -66,6 +66,9 @@ class IncrementalPoseGraph:
         self._adj: list[list[int]] = [[]]
         self.local_solves = 0
         self.full_solves = 0
+        # the whole-graph optimiser of the last full solve, kept while no pose or edge is added: the solves that
+        # follow a loop, one per scan, then reuse its symbolic analysis and factorisation ordering
+        self._full: tuple[tuple[int, int, OptimizerConfig], Optimizer] | None = None
 
     @property
     def poses(self) -> Array:
@@ -156,7 +159,10 @@ class IncrementalPoseGraph:
     def _solve_full(self, iterations: int, method: str = "gn") -> Summary:
         n = self.num_poses
         cfg = OptimizerConfig(method="lm" if method == "lm" else "gn", max_iterations=iterations)
-        out, summary = optimize(self._graph(np.arange(self.num_edges)), Values(np.arange(n), self.poses), cfg)
+        key = (n, self.num_edges, cfg)
+        if self._full is None or self._full[0] != key:  # edges are never changed once added: the count says it all
+            self._full = (key, Optimizer(self._graph(np.arange(self.num_edges)), cfg))
+        out, summary = self._full[1].optimize(Values(np.arange(n), self.poses))
         self._poses[:n] = out.poses
         self.full_solves += 1
         return summary
