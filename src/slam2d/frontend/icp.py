@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from slam2d.config import check_positive, check_probability
 from slam2d.geometry import se2
-from slam2d.geometry.angles import wrap_angle
+from slam2d.geometry.angles import wrap_angle, wrap_angle_scalar
 
 Array = NDArray[np.float64]
 
@@ -185,18 +185,25 @@ def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | N
     elif normals is None:
         normals = estimate_normals(tgt, cfg.normal_neighbours, tree)
 
+    sx, sy = src[:, 0].copy(), src[:, 1].copy()  # contiguous columns: every iteration reads them
+    gate, trim, tol = cfg.max_correspondence_m, cfg.trim_fraction, cfg.tolerance
+    moved = np.empty_like(src)
+
     def match(tr: Array) -> tuple[NDArray[np.intp], NDArray[np.intp], Array]:
-        moved = se2.transform_points(tr, src)
-        d, j = tree.query(moved, distance_upper_bound=cfg.max_correspondence_m)
+        # se2.transform_points written into one buffer: the same arithmetic, no temporaries to stack
+        c, s = np.cos(tr[2]), np.sin(tr[2])
+        moved[:, 0] = tr[0] + c * sx - s * sy
+        moved[:, 1] = tr[1] + s * sx + c * sy
+        d, j = tree.query(moved, distance_upper_bound=gate)
         ok = np.flatnonzero(np.isfinite(d))
-        if cfg.trim_fraction < 1.0 and len(ok):
-            keep = max(int(np.ceil(cfg.trim_fraction * len(ok))), 1)
+        if trim < 1.0 and len(ok):
+            keep = max(int(np.ceil(trim * len(ok))), 1)
             ok = ok[np.argsort(d[ok], kind="stable")[:keep]]
         return ok, j[ok], moved
 
     converged = False
     it = 0
-    history: list[Array] = []
+    history = np.empty((0, 3))
     for it in range(1, cfg.max_iterations + 1):
         ok, j, moved = match(t)
         if len(ok) < cfg.min_matches:
@@ -207,20 +214,32 @@ def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | N
             step = np.abs(dt)
         else:
             n = normals[j]
-            dr = _rotated_derivative(float(t[2]), src[ok])
+            c, s = np.cos(t[2]), np.sin(t[2])
+            px, py = sx[ok], sy[ok]
+            dr = np.empty((len(ok), 2))  # d(R p)/d theta
+            dr[:, 0] = -s * px - c * py
+            dr[:, 1] = c * px - s * py
+            jac = np.empty((len(ok), 3))
+            jac[:, :2] = n
+            jac[:, 2] = np.einsum("ni,ni->n", n, dr)
             r = np.einsum("ni,ni->n", n, moved[ok] - tgt[j])
-            jac = np.column_stack([n[:, 0], n[:, 1], np.einsum("ni,ni->n", n, dr)])
             # minimum-norm step: a degenerate direction (corridor axis) is left where the initial guess put it
             delta = -np.linalg.lstsq(jac, r, rcond=1e-8)[0]
-            t = se2.retract(t, delta)
+            t = t + delta  # se2.retract
+            t[2] = wrap_angle_scalar(float(t[2]))
             step = np.abs(delta)
         # trimmed matching can flip between two correspondence sets forever (a limit cycle of ~1 mm): returning
-        # to a transform of the last few iterations is convergence as well
-        if np.all(step < cfg.tolerance) or (
-                history and bool(np.any(np.all(np.abs(se2.local(np.asarray(history), t)) < cfg.tolerance, axis=1)))):
+        # to a transform of the last few iterations is convergence as well (se2.local of each, within tolerance)
+        if step.max() < tol:
             converged = True
             break
-        history = [*history[-3:], t]
+        if len(history):
+            back = np.abs(t - history)
+            back[:, 2] = np.abs(wrap_angle(t[2] - history[:, 2]))
+            if (back < tol).all(axis=1).any():
+                converged = True
+                break
+        history = np.vstack([history[-3:], t])
     ok, j, moved = match(t)
     if len(ok) < cfg.min_matches:
         return ICPResult(t, np.full((3, 3), np.inf), False, it, len(ok), float("inf"), len(ok) / len(src))
