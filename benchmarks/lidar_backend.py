@@ -3,12 +3,16 @@
     OPENBLAS_NUM_THREADS=1 python benchmarks/lidar_backend.py --json lidar_backend.json
     OPENBLAS_NUM_THREADS=1 python benchmarks/lidar_backend.py --logs intel --sim-seeds 0   # one log only
     OPENBLAS_NUM_THREADS=1 python benchmarks/lidar_backend.py --logs aces --sim-seeds 0 --set loop_queue=12
+    OPENBLAS_NUM_THREADS=1 python benchmarks/lidar_backend.py --sim-seeds 0 --repeat 3   # timing: median of 3 runs
 
 Per log (one process each, so that peak RSS is the log's own): Kümmerle relation errors (mean +- std, trans and
 rot) of the default ``lidar`` estimator, per-scan latency p50/p99/max (one ``step`` + ``estimate``), the whole-log
 real-time factor (log duration / processing time, finalize included) and peak RSS; also the translation error over
 the relations less than 1 s apart alone (local accuracy; ``lidar_relations_check.py`` scores the same relations
-with a raw-scan ICP and with odometry). ``--set FIELD=VALUE`` (repeatable)
+with a raw-scan ICP and with odometry). ``--repeat N`` runs the logs N times, taking turns (a shared machine's speed
+drifts within minutes, so each log's runs meet different moments): the timing columns are the medians, their range
+is printed, and every other column must be identical between the runs (the results are deterministic; the benchmark
+stops when they are not). ``--set FIELD=VALUE`` (repeatable)
 overrides a ``LidarSLAMConfig`` field on the logs, to measure how much a harmless change moves the relation error.
 Latency and real-time factor are given twice: wall clock, and CPU time of the thread (what they are on a core of
 their own; on a shared machine the wall clock also counts the waits for a core). Simulation: ATE of the lidar
@@ -115,6 +119,27 @@ def sim(scenario: str, seed: int) -> dict[str, Any]:
     return out
 
 
+#: the columns that measure the machine, not the estimator
+TIMING = ("latency_ms_p50", "latency_ms_p99", "latency_ms_max", "processing_s", "real_time_factor", "cpu_ms_p50",
+          "cpu_ms_p99", "cpu_ms_max", "processing_cpu_s", "real_time_factor_cpu", "peak_rss_mb")
+
+
+def combine(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """One record from repeated runs of a log: the timing columns' medians (each run's kept under ``timing_runs``);
+    every other column must be the same in every run."""
+    first = runs[0]
+    for r in runs[1:]:
+        for k in first.keys() | r.keys():
+            if k not in TIMING and first.get(k) != r.get(k):
+                raise SystemExit(f"{first['log']}: {k} differs between runs ({first.get(k)} vs {r.get(k)}): "
+                                 "the estimator is not deterministic")
+    out = dict(first)
+    out.update({k: float(np.median([r[k] for r in runs])) for k in TIMING})
+    out["runs"] = len(runs)
+    out["timing_runs"] = [{k: r[k] for k in TIMING} for r in runs]
+    return out
+
+
 def _isolated(fn: Any, *args: Any) -> Any:
     with mp.get_context("spawn").Pool(1) as pool:
         return pool.apply(fn, args)
@@ -124,6 +149,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--logs", default=",".join(LOGS), help="comma-separated Radish logs (default all four)")
     ap.add_argument("--sim-seeds", type=int, default=10, help="warehouse seeds for the false-loop count (default 10)")
+    ap.add_argument("--repeat", type=int, default=1, help="runs of each log, taking turns; timing = medians")
     ap.add_argument("--json", default=None, help="write all records as JSON")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a LidarSLAMConfig field on the logs (repeatable), e.g. loop_queue=12")
@@ -132,8 +158,15 @@ def main() -> None:
 
     overrides = parse_set_args(args.set)
     records: dict[str, Any] = {"logs": [], "sim": []}
-    for name in [n for n in args.logs.split(",") if n]:
-        r = _isolated(one_log, name, overrides)
+    if args.repeat < 1:
+        ap.error("--repeat must be >= 1")
+    names = [n for n in args.logs.split(",") if n]
+    per_log: dict[str, list[dict[str, Any]]] = {n: [] for n in names}
+    for _ in range(args.repeat):  # taking turns: each log's runs meet different moments of the machine
+        for name in names:
+            per_log[name].append(_isolated(one_log, name, overrides))
+    for name in names:
+        r = combine(per_log[name])
         records["logs"].append(r)
         print(f"{name:10s} rel {r['rel_trans_mean_m']:.4f} +- {r['rel_trans_std_m']:.4f} m  "
               f"{r['rel_rot_mean_deg']:.3f} +- {r['rel_rot_std_deg']:.3f} deg (under 1 s apart "
@@ -141,8 +174,8 @@ def main() -> None:
               f"p99 {r['latency_ms_p99']:.1f} max {r['latency_ms_max']:.0f} ms (CPU p50 {r['cpu_ms_p50']:.1f} "
               f"p99 {r['cpu_ms_p99']:.1f} max {r['cpu_ms_max']:.0f}) | RTF {r['real_time_factor']:.1f}x "
               f"(CPU {r['real_time_factor_cpu']:.1f}x) | "
-              f"RSS {r['peak_rss_mb']:.0f} MB | loops {r['loops_accepted']}/{r['loops_rejected']} rejected",
-              flush=True)
+              f"RSS {r['peak_rss_mb']:.0f} MB | loops {r['loops_accepted']}/{r['loops_rejected']} rejected"
+              + _spread(r), flush=True)
     runs = [("room", 0)] + [("warehouse", s) for s in range(args.sim_seeds)]
     for scen, seed in runs:
         r = sim(scen, seed)
@@ -156,6 +189,16 @@ def main() -> None:
     if args.json:
         with open(args.json, "w") as f:
             json.dump(records, f, indent=2, default=float)
+
+
+def _spread(r: dict[str, Any]) -> str:
+    """The range of the repeated runs' CPU p99 and real-time factor ("" for one run)."""
+    t = r.get("timing_runs", [])
+    if len(t) < 2:
+        return ""
+    p99, rtf = [x["cpu_ms_p99"] for x in t], [x["real_time_factor_cpu"] for x in t]
+    return (f" | medians of {len(t)} runs: CPU p99 {min(p99):.1f}-{max(p99):.1f} ms, "
+            f"RTF {min(rtf):.1f}-{max(rtf):.1f}x")
 
 
 if __name__ == "__main__":
