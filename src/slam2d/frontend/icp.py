@@ -116,15 +116,18 @@ def kabsch_2d(p: ArrayLike, q: ArrayLike) -> Array:
     return np.array([t[0], t[1], float(wrap_angle(np.arctan2(r[1, 0], r[0, 0])))])
 
 
-def _rotated_derivative(theta: float, src: Array) -> Array:
-    """d(R p)/d theta = R' p for each source point: (N,2)."""
+def _rotated_derivative(theta: float, x: Array, y: Array) -> Array:
+    """d(R p)/d theta = R' p for each source point p = (x, y): (N,2)."""
     c, s = np.cos(theta), np.sin(theta)
-    return np.stack([-s * src[:, 0] - c * src[:, 1], c * src[:, 0] - s * src[:, 1]], axis=-1)
+    out = np.empty((len(x), 2))
+    out[:, 0] = -s * x - c * y
+    out[:, 1] = c * x - s * y
+    return out
 
 
 def _jacobian_rows(theta: float, src: Array) -> tuple[Array, Array]:
     """d(R p + t)/d[x, y, theta] for each source point: (N,2,3)."""
-    dr = _rotated_derivative(theta, src)
+    dr = _rotated_derivative(theta, src[:, 0], src[:, 1])
     n = len(src)
     j = np.zeros((n, 2, 3))
     j[:, 0, 0] = 1.0
@@ -214,14 +217,9 @@ def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | N
             step = np.abs(dt)
         else:
             n = normals[j]
-            c, s = np.cos(t[2]), np.sin(t[2])
-            px, py = sx[ok], sy[ok]
-            dr = np.empty((len(ok), 2))  # d(R p)/d theta
-            dr[:, 0] = -s * px - c * py
-            dr[:, 1] = c * px - s * py
             jac = np.empty((len(ok), 3))
             jac[:, :2] = n
-            jac[:, 2] = np.einsum("ni,ni->n", n, dr)
+            jac[:, 2] = np.einsum("ni,ni->n", n, _rotated_derivative(t[2], sx[ok], sy[ok]))
             r = np.einsum("ni,ni->n", n, moved[ok] - tgt[j])
             # minimum-norm step: a degenerate direction (corridor axis) is left where the initial guess put it
             delta = -np.linalg.lstsq(jac, r, rcond=1e-8)[0]
@@ -229,16 +227,13 @@ def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | N
             t[2] = wrap_angle_scalar(float(t[2]))
             step = np.abs(delta)
         # trimmed matching can flip between two correspondence sets forever (a limit cycle of ~1 mm): returning
-        # to a transform of the last few iterations is convergence as well (se2.local of each, within tolerance)
+        # to a transform of the last few iterations is convergence as well
         if step.max() < tol:
             converged = True
             break
-        if len(history):
-            back = np.abs(t - history)
-            back[:, 2] = np.abs(wrap_angle(t[2] - history[:, 2]))
-            if (back < tol).all(axis=1).any():
-                converged = True
-                break
+        if len(history) and (np.abs(se2.local(history, t)) < tol).all(axis=1).any():
+            converged = True
+            break
         history = np.vstack([history[-3:], t])
     ok, j, moved = match(t)
     if len(ok) < cfg.min_matches:
