@@ -18,6 +18,7 @@ Hessian-based estimate: it captures degeneracy (a corridor is unconstrained alon
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -116,24 +117,20 @@ def kabsch_2d(p: ArrayLike, q: ArrayLike) -> Array:
     return np.array([t[0], t[1], float(wrap_angle(np.arctan2(r[1, 0], r[0, 0])))])
 
 
-def _rotated_derivative(theta: float, x: Array, y: Array) -> Array:
-    """d(R p)/d theta = R' p for each source point p = (x, y): (N,2)."""
-    c, s = np.cos(theta), np.sin(theta)
-    out = np.empty((len(x), 2))
-    out[:, 0] = -s * x - c * y
-    out[:, 1] = c * x - s * y
-    return out
+def _rotated_derivative(c: float, s: float, x: Array, y: Array) -> tuple[Array, Array]:
+    """d(R p)/d theta = R' p for each source point p = (x, y), with ``c, s`` the cosine and sine of R's angle: its
+    x and y components, (N,) each."""
+    return -s * x - c * y, c * x - s * y
 
 
-def _jacobian_rows(theta: float, src: Array) -> tuple[Array, Array]:
+def _jacobian_rows(theta: float, src: Array) -> Array:
     """d(R p + t)/d[x, y, theta] for each source point: (N,2,3)."""
-    dr = _rotated_derivative(theta, src[:, 0], src[:, 1])
     n = len(src)
     j = np.zeros((n, 2, 3))
     j[:, 0, 0] = 1.0
     j[:, 1, 1] = 1.0
-    j[:, :, 2] = dr
-    return j, dr
+    j[:, 0, 2], j[:, 1, 2] = _rotated_derivative(np.cos(theta), np.sin(theta), src[:, 0], src[:, 1])
+    return j
 
 
 @dataclass(frozen=True)
@@ -192,23 +189,27 @@ def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | N
     gate, trim, tol = cfg.max_correspondence_m, cfg.trim_fraction, cfg.tolerance
     moved = np.empty_like(src)
 
-    def match(tr: Array) -> tuple[NDArray[np.intp], NDArray[np.intp], Array]:
+    def match(tr: Array) -> tuple[NDArray[np.intp], NDArray[np.intp], float, float]:
+        """The accepted matches (source indices, closest first, and their target indices) of the source
+        moved by ``tr`` into ``moved``, and the cosine and sine of ``tr``'s angle."""
         # se2.transform_points written into one buffer: the same arithmetic, no temporaries to stack
         c, s = np.cos(tr[2]), np.sin(tr[2])
         moved[:, 0] = tr[0] + c * sx - s * sy
         moved[:, 1] = tr[1] + s * sx + c * sy
         d, j = tree.query(moved, distance_upper_bound=gate)
-        ok = np.flatnonzero(np.isfinite(d))
-        if trim < 1.0 and len(ok):
-            keep = max(int(np.ceil(trim * len(ok))), 1)
-            ok = ok[np.argsort(d[ok], kind="stable")[:keep]]
-        return ok, j[ok], moved
+        if trim < 1.0:
+            # unmatched points have d = inf and sort last; a stable sort keeps index order among equal distances
+            found = int(np.count_nonzero(d < np.inf))
+            ok = np.argsort(d, kind="stable")[:max(math.ceil(trim * found), 1) if found else 0]
+        else:
+            ok = np.flatnonzero(np.isfinite(d))
+        return ok, j[ok], c, s
 
     converged = False
     it = 0
-    history = np.empty((0, 3))
+    history: list[Array] = []  # the last 4 transforms
     for it in range(1, cfg.max_iterations + 1):
-        ok, j, moved = match(t)
+        ok, j, c, s = match(t)
         if len(ok) < cfg.min_matches:
             return ICPResult(t, np.full((3, 3), np.inf), False, it, len(ok), float("inf"), len(ok) / len(src))
         if normals is None:
@@ -216,11 +217,14 @@ def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | N
             t = se2.compose(dt, t)  # dt maps target-frame points to target-frame points: it goes on the left
             step = np.abs(dt)
         else:
-            n = normals[j]
+            # the rows [n, n . d(R p)/d theta] and residuals n . (R p + t - q), written column by column
             jac = np.empty((len(ok), 3))
-            jac[:, :2] = n
-            jac[:, 2] = np.einsum("ni,ni->n", n, _rotated_derivative(t[2], sx[ok], sy[ok]))
-            r = np.einsum("ni,ni->n", n, moved[ok] - tgt[j])
+            jac[:, :2] = normals[j]
+            n0, n1 = jac[:, 0], jac[:, 1]
+            dx, dy = _rotated_derivative(c, s, sx[ok], sy[ok])
+            jac[:, 2] = n0 * dx + n1 * dy
+            m, q = moved[ok], tgt[j]
+            r = n0 * (m[:, 0] - q[:, 0]) + n1 * (m[:, 1] - q[:, 1])
             # minimum-norm step: a degenerate direction (corridor axis) is left where the initial guess put it
             delta = -np.linalg.lstsq(jac, r, rcond=1e-8)[0]
             t = t + delta  # se2.retract
@@ -231,14 +235,16 @@ def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | N
         if step.max() < tol:
             converged = True
             break
-        if len(history) and (np.abs(se2.local(history, t)) < tol).all(axis=1).any():
+        # se2.local's x and y are plain differences: only a transform that passes them needs the full check
+        if any(abs(t[0] - h[0]) < tol and abs(t[1] - h[1]) < tol for h in history) and \
+                (np.abs(se2.local(np.array(history), t)) < tol).all(axis=1).any():
             converged = True
             break
-        history = np.vstack([history[-3:], t])
-    ok, j, moved = match(t)
+        history = [*history[-3:], t]
+    ok, j, _, _ = match(t)
     if len(ok) < cfg.min_matches:
         return ICPResult(t, np.full((3, 3), np.inf), False, it, len(ok), float("inf"), len(ok) / len(src))
-    jr, _ = _jacobian_rows(float(t[2]), src[ok])
+    jr = _jacobian_rows(float(t[2]), src[ok])
     if normals is None:
         res = (moved[ok] - tgt[j]).ravel()
         jac = jr.reshape(-1, 3)
