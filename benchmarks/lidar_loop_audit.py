@@ -35,8 +35,8 @@ class _Audited(LidarSLAM):
         super().reset(initial_pose, rng=rng)
         self.verified: list[tuple[int, int, LoopCheck, Any]] = []
 
-    def _check_stages(self, c: int, k: int, poses: Any) -> Generator[None, None, LoopCheck]:
-        chk = yield from super()._check_stages(c, k, poses)
+    def _check_stages(self, c: int, k: int, poses: Any, *args: Any, **kwargs: Any) -> Generator[str, None, LoopCheck]:
+        chk = yield from super()._check_stages(c, k, poses, *args, **kwargs)
         if chk.ok:
             self.verified.append((self._kf_step[c], self._kf_step[k], chk, se2.between(poses[c], poses[k])))
         return chk

@@ -180,14 +180,15 @@ def _stages_run(gen: Generator[None, None, T]) -> tuple[int, T]:
 
 
 @pytest.mark.parametrize("stages", [1, 2, 3, 7])
-def test_a_staged_correlative_search_pauses_stages_minus_one_times_and_equals_the_search_at_once(stages: int) -> None:
+def test_a_staged_correlative_search_pauses_after_its_grid_and_between_stages_and_equals_the_search_at_once(
+        stages: int) -> None:
     rng = np.random.default_rng(stages)
     cfg = LidarSLAMConfig(loop_retry_window_m=2.5)
     pts, target, guess, _ = _return(rng, posts=False)
     cc = wide_correlative(cfg)
     pauses, staged = _stages_run(correlative_stages(pts, target, guess, cc, stages=stages))
     once = correlative_match(pts, target, guess, cc)
-    assert pauses == stages - 1
+    assert pauses == stages  # the grid, then the coarse scores in ``stages`` parts
     assert np.array_equal(staged.transform, once.transform)
     assert (staged.score, staged.ambiguity, staged.evaluated) == (once.score, once.ambiguity, once.evaluated)
     assert run_stages(correlative_stages(pts, target, guess, cc, stages=stages)).score == once.score
@@ -198,8 +199,8 @@ def test_a_staged_loop_check_pauses_in_its_search_and_before_icp_and_equals_the_
     cfg = LidarSLAMConfig(loop_retry_window_m=2.5, loop_retry_stages=3, loop_search_stages=2)
     pts, target, guess, truth = _return(rng, posts=False)
     pauses, first = _stages_run(verify_loop_stages(pts, target, guess, cfg))
-    assert pauses == cfg.loop_search_stages - 1 and first.reason == "score"  # rejected before ICP: no ICP stage
+    assert pauses == cfg.loop_search_stages and first.reason == "score"  # rejected before ICP: no ICP stages
     pauses, wide = _stages_run(verify_loop_stages(pts, target, guess, cfg, wide=True))
-    assert pauses == cfg.loop_retry_stages and wide.ok  # the search's stages, then ICP's
+    assert pauses == cfg.loop_retry_stages + 2 and wide.ok  # the search's stages, then the normals', then ICP's
     at_once = verify_loop(pts, target, guess, cfg, wide=True)
     assert np.array_equal(at_once.transform, wide.transform) and at_once.chi2 == wide.chi2

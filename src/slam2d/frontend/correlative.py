@@ -198,9 +198,11 @@ def correlative_match(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
 
 def correlative_stages(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
                        config: CorrelativeConfig | None = None, *,
-                       stages: int = 1) -> Generator[None, None, CorrelativeMatch]:
-    """:func:`correlative_match` in ``stages`` steps that pause in between (the coarse scores, the bulk of the
-    work, split by rotation; the same result as at once): a caller with a per-cycle budget runs one at a time."""
+                       stages: int = 1) -> Generator[str, None, CorrelativeMatch]:
+    """:func:`correlative_match` in steps that pause in between, the same result as at once: the likelihood grid,
+    then the coarse scores (the bulk of the work) split by rotation into ``stages`` steps, the last of which also
+    refines. ``stages`` + 1 steps: a caller with a per-cycle budget runs one at a time. Each pause yields the kind
+    of the step that follows ("scores"), so that such a caller can tell short steps from long ones."""
     cfg = config or CorrelativeConfig()
     src = np.asarray(source, dtype=np.float64).reshape(-1, 2)
     tgt = np.asarray(target, dtype=np.float64).reshape(-1, 2)
@@ -224,9 +226,8 @@ def correlative_stages(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
     kx = g[0] + koff * res
     ky = g[1] + koff * res
     parts = []
-    for i, a in enumerate(np.array_split(np.arange(len(th)), max(min(stages, len(th)), 1))):
-        if i:
-            yield
+    for a in np.array_split(np.arange(len(th)), max(min(stages, len(th)), 1)):
+        yield "scores"
         parts.append(_scores(grids.coarse, grids, src, th[a], g[:2], koff, koff, res))
     sc = np.concatenate(parts, axis=0)  # (A,Y,X)
     order = np.argsort(sc, axis=None, kind="stable")[::-1]
@@ -258,8 +259,9 @@ def correlative_stages(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
     return CorrelativeMatch(best_t, max(best_s, 0.0), amb, int(evaluated))
 
 
-def run_stages(stages: Generator[None, None, T]) -> T:
-    """Run staged work (a generator that pauses between stages) to its end and return its value."""
+def run_stages(stages: Generator[object, None, T]) -> T:
+    """Run staged work (a generator that pauses between stages, yielding anything) to its end and return its
+    value."""
     while True:
         try:
             next(stages)

@@ -11,7 +11,8 @@ Per step (one scan):
    keyframe (the tracking covariance rotated into that keyframe's frame, floored);
 3. loop closures (every ``loop_every`` keyframes): old keyframes within ``loop_radius_m`` of the new one (and at
    least ``loop_min_separation`` keyframes older) are queued as candidates; each scan runs
-   ``loop_verify_per_scan`` verification stages (more while under ``loop_budget_ms`` of CPU), against a local map
+   ``loop_verify_per_scan`` verification stages (more while the next one is predicted to end under
+   ``loop_budget_ms`` of CPU), against a local map
    around the old keyframe: correlative matching over a window (:mod:`slam2d.frontend.correlative`; a high score
    and no competing alignment nearly as good: parallel identical aisles, corridor axes; with ``loop_retry_window_m``
    set, a search that matched nothing with its best try at the window's edge runs again over that window as a
@@ -119,7 +120,9 @@ class LidarSLAM(EstimatorLifecycle):
         # their decision enters the graph, wide retry?, may it be retried?), and decisions awaiting that scan: (scan,
         # events, loops)
         self._queue: deque[tuple[int, int, Array, int, bool, bool]] = deque()
-        self._active: tuple[int, int, Array, int, Generator[None, None, LoopCheck]] | None = None  # in verification
+        self._active: tuple[int, int, Array, int, Generator[str, None, LoopCheck]] | None = None  # in verification
+        self._next_stage = "grid"  # the kind of the active candidate's next stage (a new candidate's first: "grid")
+        self._stage_ms: dict[str, deque[float]] = {}  # the last CPU times of each kind of stage (ms)
         self._decided: deque[tuple[int, list[LoopEvent], list[tuple[int, int, Array, Array]]]] = deque()
         self._full_pending, self._started = 0, 0.0  # whole-graph GN iterations owed after a loop; step's start
         self.loops_dropped = 0  # candidates refused because loop_queue were in flight
@@ -316,9 +319,9 @@ class LidarSLAM(EstimatorLifecycle):
     # ------------------------------------------------------------------ loop work, bounded per scan
     def _loop_work(self, verifications: int, *, flush: bool = False) -> None:
         """One scan's share of the loop work: a whole-graph Gauss-Newton iteration if a loop still owes some,
-        ``verifications`` verification stages of queued candidates and more while the scan is under
-        ``loop_budget_ms``, and the decisions that are due entered (``flush``: everything now). No scan pays for a
-        whole search (a 30 Hz lidar leaves 33 ms per scan).
+        ``verifications`` verification stages of queued candidates and more while the scan's CPU time plus the
+        next stage's predicted cost (``_predicted_ms``) is under ``loop_budget_ms``, and the decisions that are due
+        entered (``flush``: everything now). No scan pays for a whole search (a 30 Hz lidar leaves 33 ms per scan).
         Schedule independence: a candidate is verified against the keyframe poses of the moment it was queued,
         and its decision enters the graph exactly ``loop_queue`` scans after that moment (a candidate still
         unverified then is finished at once), so the loops and the trajectory do not depend on how the stages
@@ -330,21 +333,27 @@ class LidarSLAM(EstimatorLifecycle):
             # converged (the step changed the cost too little): the rest of the owed iterations are not needed
             self._full_pending = 0 if summary.termination != "max iterations" else self._full_pending - 1
             moved = True
-        done, budget = 0, self.config.loop_budget_ms / 1e3  # verification stages run in this scan, CPU budget
+        done, budget = 0, self.config.loop_budget_ms  # verification stages run in this scan, CPU budget (ms)
         while (self._active or self._queue) and (
                 done < verifications or flush or (self._active or self._queue[0])[3] <= self.steps
-                or time.thread_time() - self._started < budget):
+                or 1e3 * (time.thread_time() - self._started) + self._predicted_ms() < budget):
             if self._active is None:
                 if not flush and self._queue[0][3] - self.config.loop_queue > self.steps:
                     break  # a wide retry waits until no candidate queued later can be due before it
                 c, k, snap, due, wide, may_retry = self._queue.popleft()
                 self._active = (c, k, snap, due, self._check_stages(c, k, snap, wide, may_retry=may_retry))
+                self._next_stage = "grid"
             done += 1
+            kind, began = self._next_stage, time.thread_time()
             try:
-                next(self._active[4])
+                self._next_stage = next(self._active[4])
+                chk = None
             except StopIteration as stop:
+                self._next_stage, chk = "grid", stop.value
+            self._stage_ms.setdefault(kind, deque(maxlen=4)).append(1e3 * (time.thread_time() - began))
+            if chk is not None:
                 c, k, snap, due, _ = self._active
-                self._active, chk = None, stop.value
+                self._active = None
                 if chk.reason == "retry":  # a candidate of its own, due loop_queue scans later: no crowded due scan
                     enqueue(self._queue, (c, k, snap, due + self.config.loop_queue, True, True))
                     self.loops_retried += 1
@@ -365,6 +374,11 @@ class LidarSLAM(EstimatorLifecycle):
         if moved:  # the current pose follows its keyframe
             self._version += 1
             self._pose = se2.compose(self.graph.poses[self._owner[-1]], self._rel[-1])
+
+    def _predicted_ms(self) -> float:
+        """CPU time the next verification stage is expected to take (ms): the longest of the last stages of its
+        kind (0 before the first)."""
+        return max(self._stage_ms.get(self._next_stage if self._active else "grid", ()), default=0.0)
 
     def _decide(self, c: int, k: int, t_ck: Array, info: Array, ok: bool,
                 snap: Array) -> tuple[list[LoopEvent], list[tuple[int, int, Array, Array]]]:
@@ -432,14 +446,15 @@ class LidarSLAM(EstimatorLifecycle):
         return run_stages(self._check_stages(c, k, poses, may_retry=may_retry))
 
     def _check_stages(self, c: int, k: int, poses: Array, wide: bool | None = None, *,
-                      may_retry: bool = True) -> Generator[None, None, LoopCheck]:
-        """Every gate of a loop candidate (:mod:`slam2d.graph.lidar_loops`), as stages that pause in between (the
-        search and its refinement; the wide retry's ``loop_retry_stages``; a static re-check's masks, then its
-        search); returns the check. ``poses`` are the keyframe poses when the candidate was queued: the guess,
-        the old local map and the new keyframe's neighbours all come from them, so a candidate verified scans later
-        is decided exactly as it would have been at once (the graph moves in between). ``wide``: None runs a wide
-        retry inline (a check at once), False returns it as a "retry" rejection for the scheduler to queue, True is
-        that queued retry; ``may_retry`` False: no retry at all (see ``_may_retry``)."""
+                      may_retry: bool = True) -> Generator[str, None, LoopCheck]:
+        """Every gate of a loop candidate (:mod:`slam2d.graph.lidar_loops`), as stages that pause in between, each
+        pause yielding the kind of the stage that follows (the first is "grid": the local map and its likelihood
+        grid; then the search's "scores", the ICP target's "normals", "icp"; a static re-check's two "mask" stages,
+        then its own search); returns the check. ``poses`` are the keyframe poses when the candidate was queued:
+        the guess, the old local map and the new keyframe's neighbours all come from them, so a candidate verified
+        scans later is decided exactly as it would have been at once (the graph moves in between). ``wide``: None
+        runs a wide retry inline (a check at once), False returns it as a "retry" rejection for the scheduler to
+        queue, True is that queued retry; ``may_retry`` False: no retry at all (see ``_may_retry``)."""
         cfg = self.config
         m, pose, pts = cfg.loop_map_keyframes, poses[k], self._kf_points[k]
         guess = se2.between(poses[c], pose)

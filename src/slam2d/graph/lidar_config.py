@@ -157,21 +157,28 @@ class LidarSLAMConfig:
     (0: the incremental graph's local solve only)."""
     loop_verify_per_scan: int = 1
     """verification stages every scan runs: candidates are queued when a keyframe is made and verified over the
-    following scans, a stage at a time (a first search is ``loop_search_stages`` stages of correlative scores,
-    then one of ICP and the later gates; a self-similar place's static re-check is its masks, then its own search),
-    which bounds the work of every scan."""
-    loop_budget_ms: float = 20.0
-    """after its ``loop_verify_per_scan`` stages, a scan runs more while its own CPU time (the thread's, from the
-    start of ``step``) is under this (ms; 0: never more). Results do not depend on it (decisions enter the graph at
-    fixed scans, a candidate not verified by then is finished at once); latency does: stages fill the scans whose
-    tracking left time, so fewer candidates are left to be finished at once at their due scan. With one stage per
-    scan and the wide retry on, those finishes made mit-csail's CPU p99 65 ms (top 1 % of scans: 90 ms of loop
-    work); two stages per scan put two 15-25 ms searches into one scan (p99 57 ms). Going by the cost of the last
-    stages (no stage unless the longest of the last 16 still fits, none forced) ran fewer: more candidates were
-    finished at once (p99 71 ms). 25 ms: p99 34-35 ms with and without the retry; 20: 30-32 ms."""
+    following scans, a stage at a time, which bounds the work of every scan. A first search is a stage for its local
+    map's likelihood grid, ``loop_search_stages`` stages of correlative scores, then one for the ICP target's normals
+    and one for ICP and the later gates; a self-similar place's static re-check is two mask stages, then its own
+    search (:meth:`slam2d.graph.lidar.LidarSLAM._check_stages`)."""
+    loop_budget_ms: float = 27.0
+    """after its ``loop_verify_per_scan`` stages, a scan runs another while its own CPU time (the thread's, from the
+    start of ``step``) plus the predicted cost of that stage stays under this (ms; 0: never more). The prediction is
+    the longest of the last 4 stages of the same kind (grid, scores, normals, icp, mask): a 1 ms slice of scores
+    still fits where a 10 ms mask would not. Results do not depend on it (decisions enter the graph at fixed scans,
+    a candidate not verified by then is finished at once); latency does: stages fill the scans whose tracking left
+    time, so fewer candidates are left to be finished at once at their due scan, the spikes. Before the prediction
+    a stage began while the scan was under 20 ms and ran past it by its own length (up to 16 ms on mit-csail):
+    25 ms gave p99 34-35 ms, 20 gave 30-32 ms, and mit-csail still had scans of 80-110 ms. With it, runs alternated
+    with the old rule at 20 (``benchmarks/lidar_backend.py``, CPU p99 / max per scan, ms): mit-csail 30.6 / 38 and
+    29.2 / 37 at 27 against 32.6 / 101 and 26.8 / 40; fr079 32.5 / 125 and 32.5 / 138 against 33.6 / 147 and
+    31.1 / 139 (its spikes are bursts of candidates beyond what any budget under 33 ms verifies in time). 24 left
+    mit-csail's spikes (80-108 ms), 30 raised its p99 (31-32 ms). An earlier prediction from the longest of the
+    last 16 stages of any kind, with no stage forced, ran too few: more candidates were finished at once (p99 71
+    ms)."""
     loop_search_stages: int = 6
-    """a first search's correlative scores run as this many verification stages (split by rotation). Results do not
-    depend on it, latency does: a stage begun just under ``loop_budget_ms`` runs past it by its own length. At 3
+    """a first search's correlative scores run as this many verification stages (split by rotation), after the
+    stage that builds the likelihood grid. Results do not depend on it, latency does (see ``loop_budget_ms``). At 3
     (4-6 ms a stage on mit-csail on 2026-12-02's VM) mit-csail's CPU p99 was 29 ms that day, 44-60 ms on the slower
     VM of 2026-12-03; 6 here and in ``loop_retry_stages`` gave 31-37 ms there, fr079 unchanged (34-37 ms against
     34-35 ms, runs alternated; ``benchmarks/lidar_backend.py``)."""

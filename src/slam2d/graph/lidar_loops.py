@@ -79,10 +79,11 @@ def verify_loop(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig, *
 
 
 def verify_loop_stages(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig, *,
-                       wide: bool = False) -> Generator[None, None, LoopCheck]:
-    """:func:`verify_loop` in stages that pause in between: the correlative scores split by rotation into
-    ``loop_search_stages`` (``loop_retry_stages`` for the wide search), then, when the score and ambiguity gates
-    pass, ICP and the later gates."""
+                       wide: bool = False) -> Generator[str, None, LoopCheck]:
+    """:func:`verify_loop` in stages that pause in between, each pause yielding the kind of the stage that follows:
+    the correlative search (its likelihood grid, then its scores split by rotation into ``loop_search_stages``,
+    ``loop_retry_stages`` for the wide search: "scores"), then, when the score and ambiguity gates pass, the ICP
+    target's normals ("normals"), and ICP with the later gates ("icp")."""
     cc = wide_correlative(cfg) if wide else cfg.correlative
     cm = yield from correlative_stages(pts[::cfg.loop_retry_stride] if wide else pts, target, guess, cc,
                                        stages=cfg.loop_retry_stages if wide else cfg.loop_search_stages)
@@ -93,8 +94,9 @@ def verify_loop_stages(pts: Array, target: Array, guess: Array, cfg: LidarSLAMCo
         return base.rejected("edge")  # the scores still rise at the window's edge: the peak may lie beyond it
     if cm.ambiguity > cfg.loop_max_ambiguity:
         return base.rejected("ambiguity")
-    yield
+    yield "normals"
     prep = prepare_target(target, cfg.loop_icp)
+    yield "icp"
     res = icp(pts, prep, initial=cm.transform, config=cfg.loop_icp)
     sigma = float(np.sqrt(np.linalg.eigvalsh(res.covariance[:2, :2])[-1])) \
         if np.all(np.isfinite(res.covariance)) else float("inf")
@@ -128,22 +130,24 @@ def keyframe_points(kf_points: list[Array], poses: Array, lo: int, hi: int, fram
 
 
 def static_stages(kf_points: list[Array], poses: Array, c: int, k: int, chk: LoopCheck, cfg: LidarSLAMConfig, *,
-                  wide: bool = False) -> Generator[None, None, LoopCheck]:
+                  wide: bool = False) -> Generator[str, None, LoopCheck]:
     """Loop (old keyframe ``c``, new keyframe ``k``) in a self-similar place, verified again on what two keyframes
     saw on the same surface (:func:`confirmed_mask`; a moving object may be all that breaks the tie): the old
     keyframe's local map, the new scan against the keyframes just before it. ``kf_points``: each keyframe's scan
     points in its frame, ``poses`` the keyframe poses, ``chk`` the check so far (returned as it is when
-    ``loop_static_radius_m`` is 0). Stages: the masks, then the check (its wide search in its own stages)."""
+    ``loop_static_radius_m`` is 0). Stages: the new scan's mask ("mask"), the old local map's ("mask"), then the
+    check (its likelihood grid: "grid", then see :func:`verify_loop_stages`)."""
     if cfg.loop_static_radius_m <= 0:
         return chk
-    yield
+    yield "mask"
     m, r, a, s = cfg.loop_map_keyframes, cfg.loop_static_radius_m, cfg.loop_static_normal_rad, cfg.loop_static_seen_m
     old = [keyframe_points(kf_points, poses, j, j + 1, poses[c]) for j in range(max(c - m, 0), min(c + m + 1, k))]
     pts = kf_points[k]
     new = [pts] + [keyframe_points(kf_points, poses, j, j + 1, poses[k]) for j in range(max(k - m, 0), k)]
-    static_pts, static_old = pts[confirmed_mask(new, r, a, s)[:len(pts)]], np.vstack(old)
-    static_old = static_old[confirmed_mask(old, r, a, s)]
-    yield
+    static_pts = pts[confirmed_mask(new, r, a, s)[:len(pts)]]
+    yield "mask"
+    static_old = np.vstack(old)[confirmed_mask(old, r, a, s)]
+    yield "grid"
     return (yield from verify_loop_stages(static_pts, static_old, se2.between(poses[c], poses[k]), cfg, wide=wide))
 
 
