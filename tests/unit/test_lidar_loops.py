@@ -168,7 +168,7 @@ def test_the_wide_search_rejects_a_corridor_of_repeating_posts(seed: int) -> Non
     assert wide.reason != "ambiguity" or wide.ambiguity > cfg.loop_max_ambiguity
 
 
-def _stages_run(gen: Generator[None, None, T]) -> tuple[int, T]:
+def _stages_run(gen: Generator[object, None, T]) -> tuple[int, T]:
     """Drive a staged computation: (how many times it paused, its value)."""
     pauses = 0
     while True:
