@@ -12,11 +12,11 @@ Per step (one scan):
 3. loop closures (every ``loop_every`` keyframes): old keyframes within ``loop_radius_m`` of the new one (and at
    least ``loop_min_separation`` keyframes older) are queued as candidates; each scan runs
    ``loop_verify_per_scan`` verification stages (more while the next one is predicted to end under
-   ``loop_budget_ms`` of CPU), against a local map
-   around the old keyframe: correlative matching over a window (:mod:`slam2d.frontend.correlative`; a high score
-   and no competing alignment nearly as good: parallel identical aisles, corridor axes; with ``loop_retry_window_m``
-   set, a search that matched nothing with its best try at the window's edge runs again over that window as a
-   candidate of its own, where only rival peaks count), ICP refinement; a loop in a self-similar place (ambiguity
+   ``loop_budget_ms`` of CPU), against a local map around the old keyframe: correlative matching over a window
+   (:mod:`slam2d.frontend.correlative`; a high score and no competing alignment nearly as good: parallel identical
+   aisles, corridor axes; with ``loop_retry_window_m`` set, a search that matched nothing with its best try at the
+   window's edge runs again over that window as a candidate of its own, where only rival peaks count), ICP
+   refinement; a loop in a self-similar place (ambiguity
    above ``loop_static_ambiguity``) is verified again on static structure only, the points no other keyframe
    contradicts (:mod:`slam2d.graph.lidar_loops`: a moving forklift can break an aisle's tie); a verified loop is
    accepted once a second one agrees with it; its decision enters the graph a fixed ``loop_queue`` scans after
@@ -121,8 +121,7 @@ class LidarSLAM(EstimatorLifecycle):
         # events, loops)
         self._queue: deque[tuple[int, int, Array, int, bool, bool]] = deque()
         self._active: tuple[int, int, Array, int, Generator[str, None, LoopCheck]] | None = None  # in verification
-        self._next_stage = "grid"  # the kind of the active candidate's next stage (a new candidate's first: "grid")
-        self._stage_ms: dict[str, deque[float]] = {}  # the last CPU times of each kind of stage (ms)
+        self._next_stage, self._stage_ms = "grid", lidar_loops.StageCosts()  # next stage's kind; costs by kind
         self._decided: deque[tuple[int, list[LoopEvent], list[tuple[int, int, Array, Array]]]] = deque()
         self._full_pending, self._started = 0, 0.0  # whole-graph GN iterations owed after a loop; step's start
         self.loops_dropped = 0  # candidates refused because loop_queue were in flight
@@ -241,8 +240,7 @@ class LidarSLAM(EstimatorLifecycle):
             prev = self.graph.poses[-1]
             floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
             info = np.asarray(np.linalg.inv(_relative_cov(cov, float(prev[2])) + floor), np.float64)
-            self.graph.add_step(k, np.array([k - 1]), np.array([k]), se2.between(prev, pose)[None],
-                                info[None])
+            self.graph.add_step(k, np.array([k - 1]), np.array([k]), se2.between(prev, pose)[None], info[None])
         assert scan is not None
         self._kf_step.append(index)
         self._kf_points.append(pts)
@@ -320,8 +318,9 @@ class LidarSLAM(EstimatorLifecycle):
     def _loop_work(self, verifications: int, *, flush: bool = False) -> None:
         """One scan's share of the loop work: a whole-graph Gauss-Newton iteration if a loop still owes some,
         ``verifications`` verification stages of queued candidates and more while the scan's CPU time plus the
-        next stage's predicted cost (``_predicted_ms``) is under ``loop_budget_ms``, and the decisions that are due
-        entered (``flush``: everything now). No scan pays for a whole search (a 30 Hz lidar leaves 33 ms per scan).
+        next stage's predicted cost (:class:`~slam2d.graph.lidar_loops.StageCosts`) is under ``loop_budget_ms``,
+        and the decisions that are due entered (``flush``: everything now). No scan pays for a whole search (a 30 Hz
+        lidar leaves 33 ms per scan).
         Schedule independence: a candidate is verified against the keyframe poses of the moment it was queued,
         and its decision enters the graph exactly ``loop_queue`` scans after that moment (a candidate still
         unverified then is finished at once), so the loops and the trajectory do not depend on how the stages
@@ -336,21 +335,20 @@ class LidarSLAM(EstimatorLifecycle):
         done, budget = 0, self.config.loop_budget_ms  # verification stages run in this scan, CPU budget (ms)
         while (self._active or self._queue) and (
                 done < verifications or flush or (self._active or self._queue[0])[3] <= self.steps
-                or 1e3 * (time.thread_time() - self._started) + self._predicted_ms() < budget):
+                or 1e3 * (time.thread_time() - self._started)
+                + self._stage_ms.predicted_ms(self._next_stage if self._active else "grid") < budget):
             if self._active is None:
                 if not flush and self._queue[0][3] - self.config.loop_queue > self.steps:
                     break  # a wide retry waits until no candidate queued later can be due before it
                 c, k, snap, due, wide, may_retry = self._queue.popleft()
                 self._active = (c, k, snap, due, self._check_stages(c, k, snap, wide, may_retry=may_retry))
-                self._next_stage = "grid"
             done += 1
-            kind, began = self._next_stage, time.thread_time()
+            kind, began, chk = self._next_stage, time.thread_time(), None
             try:
                 self._next_stage = next(self._active[4])
-                chk = None
             except StopIteration as stop:
                 self._next_stage, chk = "grid", stop.value
-            self._stage_ms.setdefault(kind, deque(maxlen=4)).append(1e3 * (time.thread_time() - began))
+            self._stage_ms.record(kind, 1e3 * (time.thread_time() - began))
             if chk is not None:
                 c, k, snap, due, _ = self._active
                 self._active = None
@@ -374,11 +372,6 @@ class LidarSLAM(EstimatorLifecycle):
         if moved:  # the current pose follows its keyframe
             self._version += 1
             self._pose = se2.compose(self.graph.poses[self._owner[-1]], self._rel[-1])
-
-    def _predicted_ms(self) -> float:
-        """CPU time the next verification stage is expected to take (ms): the longest of the last stages of its
-        kind (0 before the first)."""
-        return max(self._stage_ms.get(self._next_stage if self._active else "grid", ()), default=0.0)
 
     def _decide(self, c: int, k: int, t_ck: Array, info: Array, ok: bool,
                 snap: Array) -> tuple[list[LoopEvent], list[tuple[int, int, Array, Array]]]:
@@ -404,9 +397,6 @@ class LidarSLAM(EstimatorLifecycle):
         return events, loops
 
     # ------------------------------------------------------------------ maps
-    def _points_in(self, poses: Array, lo: int, hi: int, frame: Array | None = None) -> Array:
-        return lidar_loops.keyframe_points(self._kf_points, poses, lo, hi, frame)
-
     def _local_target(self) -> ICPTarget:
         key = hash((len(self._kf_step), self._version))
         if self._target is not None and self._target_version == key:
@@ -424,7 +414,8 @@ class LidarSLAM(EstimatorLifecycle):
                 self._target = self._target.moved(d[0])
                 self._target_poses, self._target_version = now.copy(), key
                 return self._target
-        self._target = prepare_target(self._points_in(self.graph.poses, lo, n), self.config.icp)
+        pts = lidar_loops.keyframe_points(self._kf_points, self.graph.poses, lo, n)
+        self._target = prepare_target(pts, self.config.icp)
         self._target_poses, self._target_span, self._target_version = now.copy(), (lo, n), key
         return self._target
 
@@ -448,17 +439,16 @@ class LidarSLAM(EstimatorLifecycle):
     def _check_stages(self, c: int, k: int, poses: Array, wide: bool | None = None, *,
                       may_retry: bool = True) -> Generator[str, None, LoopCheck]:
         """Every gate of a loop candidate (:mod:`slam2d.graph.lidar_loops`), as stages that pause in between, each
-        pause yielding the kind of the stage that follows (the first is "grid": the local map and its likelihood
-        grid; then the search's "scores", the ICP target's "normals", "icp"; a static re-check's two "mask" stages,
-        then its own search); returns the check. ``poses`` are the keyframe poses when the candidate was queued:
-        the guess, the old local map and the new keyframe's neighbours all come from them, so a candidate verified
-        scans later is decided exactly as it would have been at once (the graph moves in between). ``wide``: None
-        runs a wide retry inline (a check at once), False returns it as a "retry" rejection for the scheduler to
-        queue, True is that queued retry; ``may_retry`` False: no retry at all (see ``_may_retry``)."""
+        pause yielding the kind of the stage that follows (:class:`~slam2d.graph.lidar_loops.StageCosts`; the first
+        is "grid": the local map and its likelihood grid); returns the check. ``poses`` are the keyframe poses when
+        the candidate was queued: the guess, the old local map and the new keyframe's neighbours all come from them,
+        so a candidate verified scans later is decided exactly as it would have been at once (the graph moves in
+        between). ``wide``: None runs a wide retry inline (a check at once), False returns it as a "retry" rejection
+        for the scheduler to queue, True is that queued retry; ``may_retry`` False: no retry at all."""
         cfg = self.config
         m, pose, pts = cfg.loop_map_keyframes, poses[k], self._kf_points[k]
         guess = se2.between(poses[c], pose)
-        target = self._points_in(poses, c - m, c + m + 1, poses[c])
+        target = lidar_loops.keyframe_points(self._kf_points, poses, c - m, c + m + 1, poses[c])
         if not wide:
             chk = yield from verify_loop_stages(pts, target, guess, cfg)
             if not (may_retry and wants_retry(chk, guess, cfg)):
@@ -536,7 +526,7 @@ class LidarSLAM(EstimatorLifecycle):
         if self.layers is not None:
             return self.layers.static_grid()
         poses = self.keyframe_poses
-        world = self._points_in(poses, 0, len(poses))
+        world = lidar_loops.keyframe_points(self._kf_points, poses, 0, len(poses))
         grid = OccupancyGrid.around(np.vstack([world, poses[:, :2]]), 1.0,
                                     OccupancyConfig(resolution_m=resolution_m or self.config.map_resolution_m,
                                                     free_range_cap_m=0.0))

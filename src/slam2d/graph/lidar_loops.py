@@ -32,6 +32,7 @@ from slam2d.graph.lidar_config import LidarSLAMConfig
 
 __all__ = [
     "LoopCheck",
+    "StageCosts",
     "at_window_edge",
     "confirmed_mask",
     "enqueue",
@@ -69,6 +70,22 @@ class LoopCheck:
     def rejected(self, reason: str) -> LoopCheck:
         """This check with a later gate's rejection."""
         return replace(self, ok=False, reason=reason)
+
+
+class StageCosts:
+    """CPU times of the last verification stages of each kind ("grid", "scores", "normals", "icp", "mask", the
+    values the staged checks yield): the predicted cost of a stage is the longest of the last ``keep`` of its kind
+    (0 before the first), so that a 1 ms slice of scores still fits in a scan where a 10 ms mask would not."""
+
+    def __init__(self, keep: int = 4) -> None:
+        self._keep = keep
+        self._last: dict[str, deque[float]] = {}
+
+    def record(self, kind: str, ms: float) -> None:
+        self._last.setdefault(kind, deque(maxlen=self._keep)).append(ms)
+
+    def predicted_ms(self, kind: str) -> float:
+        return max(self._last.get(kind, ()), default=0.0)
 
 
 def verify_loop(pts: Array, target: Array, guess: Array, cfg: LidarSLAMConfig, *, wide: bool = False) -> LoopCheck:
