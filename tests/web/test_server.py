@@ -270,12 +270,20 @@ def test_a_flood_of_commands_is_rate_limited_visibly_and_hurts_nobody(server: An
             await _next_frame(b)  # the other tab keeps streaming
             answered = 0
             limited: list[str] = []
-            while not limited:  # replies to the burst, then the rate-limit message
-                data = json.loads(await _next_text(a))
-                if data["type"] == "error" and data["message"].startswith("too many commands"):
-                    limited.append(data["message"])
-                else:
-                    answered += 1
+
+            async def until_limited() -> None:  # a reply to each command of the burst, and the rate-limit message
+                nonlocal answered
+                while not limited or answered < RATE_BURST:
+                    data = json.loads(await _next_text(a))
+                    if data["type"] == "error" and data["message"].startswith("too many commands"):
+                        limited.append(data["message"])
+                    elif not data.get("pushed"):
+                        answered += 1
+
+            try:  # states stream at 30 Hz, so without a deadline a missing message would wait forever
+                await asyncio.wait_for(until_limited(), RECV_TIMEOUT_S)
+            except TimeoutError:
+                raise AssertionError(f"{answered} replies and {len(limited)} rate-limit messages") from None
             # the flooded session obeys again once the bucket has refilled: resend (a dropped command gets no reply of
             # its own) until the state shows the new value
             async def obeyed() -> dict[str, Any]:

@@ -105,6 +105,9 @@ class Connection:
         self.session_lock = asyncio.Lock()
         self.closed = False
         self.limiter = RateLimiter()
+        # commands are rate-limited as they arrive, not as they are applied: a receiver that waited for each command
+        # would read a flood only as fast as the session applies it, so a slow machine would never see it as one
+        self.commands: asyncio.Queue[str | bytes | None] = asyncio.Queue(maxsize=RATE_BURST)
         self.dropped = 0  # commands dropped since the last rate-limit message
         self.dropped_notice_at = -float("inf")
 
@@ -113,23 +116,33 @@ class Connection:
             await self.ws.send_text(json.dumps(obj, allow_nan=False, default=_json_default))
 
     async def receiver(self) -> None:
+        """Read commands as they arrive; queue what the token bucket (and the bounded queue) allows, drop the rest."""
         while True:
             msg = await self.ws.receive()
             if msg["type"] == "websocket.disconnect":
                 self.closed = True
                 return
             now = time.monotonic()
-            if not self.limiter.allow(now):
-                self.dropped += 1
-                if now - self.dropped_notice_at >= 1.0:  # one message per second, not one per dropped command
-                    self.dropped_notice_at = now
-                    await self.send_json({"type": "error", "message": (
-                        f"too many commands: {self.dropped} dropped (a page may send {RATE_PER_S:g} per second, "
-                        f"bursts of {RATE_BURST}); the session carries on")})
-                    self.dropped = 0
-                continue
+            if self.limiter.allow(now):
+                try:
+                    self.commands.put_nowait(msg.get("text") if msg.get("text") is not None else msg.get("bytes"))
+                    continue
+                except asyncio.QueueFull:  # the session is behind by a whole burst
+                    pass
+            self.dropped += 1
+            if now - self.dropped_notice_at >= 1.0:  # one message per second, not one per dropped command
+                self.dropped_notice_at = now
+                await self.send_json({"type": "error", "message": (
+                    f"too many commands: {self.dropped} dropped (a page may send {RATE_PER_S:g} per second, "
+                    f"bursts of {RATE_BURST}); the session carries on")})
+                self.dropped = 0
+
+    async def applier(self) -> None:
+        """Apply queued commands in order, each in the session's worker; reply to each (a state or a named error)."""
+        while True:
+            raw = await self.commands.get()
             try:
-                cmd = parse_command(msg.get("text") if msg.get("text") is not None else msg.get("bytes"))
+                cmd = parse_command(raw)
                 async with self.session_lock:
                     reply = await self.worker.run(self.session.apply, cmd)
             except CommandError as e:
@@ -291,9 +304,8 @@ def create_app(*, allow_origins: frozenset[str] = frozenset(), hosts: frozenset[
             session = await worker.run(spec.make, seed)
             conn = Connection(ws, session, hz, worker)
             await conn.send_json(_nan_safe(await worker.run(session.hello)))
-            recv = asyncio.create_task(conn.receiver())
-            send = asyncio.create_task(conn.sender())
-            tasks = [recv, send]
+            tasks = [asyncio.create_task(conn.receiver()), asyncio.create_task(conn.applier()),
+                     asyncio.create_task(conn.sender())]
             done, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
             for t in pending:
                 t.cancel()
