@@ -53,10 +53,12 @@ async def _next_frame(ws: Any) -> tuple[int, dict[str, np.ndarray]]:
             return decode_frame(msg)
 
 
-def _run(coro: Any) -> Any:
+def _run(coro: Any, deadline_s: float = 5 * RECV_TIMEOUT_S) -> Any:
+    """Run a test's client coroutine to its end; a client still waiting after ``deadline_s`` fails the test (frames
+    stream without end, so a loop waiting for a state that never comes would otherwise never time out)."""
     # in a thread of its own: Playwright's sync API keeps an event loop running in the main thread
     with concurrent.futures.ThreadPoolExecutor(1) as ex:
-        return ex.submit(asyncio.run, coro).result()
+        return ex.submit(asyncio.run, asyncio.wait_for(coro, deadline_s)).result()
 
 
 def test_binds_loopback_only(server: Any) -> None:
