@@ -16,11 +16,10 @@ Per step (one scan):
    (:mod:`slam2d.frontend.correlative`; a high score and no competing alignment nearly as good: parallel identical
    aisles, corridor axes; with ``loop_retry_window_m`` set, a search that matched nothing with its best try at the
    window's edge runs again over that window as a candidate of its own, where only rival peaks count), ICP
-   refinement; a loop in a self-similar place (ambiguity
-   above ``loop_static_ambiguity``) is verified again on static structure only, the points no other keyframe
-   contradicts (:mod:`slam2d.graph.lidar_loops`: a moving forklift can break an aisle's tie); a verified loop is
-   accepted once a second one agrees with it; its decision enters the graph a fixed ``loop_queue`` scans after
-   queueing (results independent of the schedule);
+   refinement; a loop in a self-similar place (ambiguity above ``loop_static_ambiguity``) is verified again on
+   static structure only, the points no other keyframe contradicts (:mod:`slam2d.graph.lidar_loops`: a moving
+   forklift can break an aisle's tie); a verified loop is accepted once a second one agrees with it; its decision
+   enters the graph a fixed ``loop_queue`` scans after queueing (results independent of the schedule);
 4. the keyframe and its edges enter :class:`~slam2d.graph.incremental.IncrementalPoseGraph`: a local solve when a
    loop enters, then ``loop_full_iterations`` whole-graph Gauss-Newton iterations, one per scan, one every
    ``graph.full_every`` keyframes, the whole graph to convergence in ``finalize`` (bounded work per scan).
@@ -121,7 +120,7 @@ class LidarSLAM(EstimatorLifecycle):
         # events, loops)
         self._queue: deque[tuple[int, int, Array, int, bool, bool]] = deque()
         self._active: tuple[int, int, Array, int, Generator[str, None, LoopCheck]] | None = None  # in verification
-        self._next_stage, self._stage_ms = "grid", lidar_loops.StageCosts()  # next stage's kind; costs by kind
+        self._next_stage, self._stage_costs = "grid", lidar_loops.StageCosts()  # next stage's kind; costs by kind
         self._decided: deque[tuple[int, list[LoopEvent], list[tuple[int, int, Array, Array]]]] = deque()
         self._full_pending, self._started = 0, 0.0  # whole-graph GN iterations owed after a loop; step's start
         self.loops_dropped = 0  # candidates refused because loop_queue were in flight
@@ -336,7 +335,7 @@ class LidarSLAM(EstimatorLifecycle):
         while (self._active or self._queue) and (
                 done < verifications or flush or (self._active or self._queue[0])[3] <= self.steps
                 or 1e3 * (time.thread_time() - self._started)
-                + self._stage_ms.predicted_ms(self._next_stage if self._active else "grid") < budget):
+                + self._stage_costs.predicted_ms(self._next_stage if self._active else "grid") < budget):
             if self._active is None:
                 if not flush and self._queue[0][3] - self.config.loop_queue > self.steps:
                     break  # a wide retry waits until no candidate queued later can be due before it
@@ -348,7 +347,7 @@ class LidarSLAM(EstimatorLifecycle):
                 self._next_stage = next(self._active[4])
             except StopIteration as stop:
                 self._next_stage, chk = "grid", stop.value
-            self._stage_ms.record(kind, 1e3 * (time.thread_time() - began))
+            self._stage_costs.record(kind, 1e3 * (time.thread_time() - began))
             if chk is not None:
                 c, k, snap, due, _ = self._active
                 self._active = None
