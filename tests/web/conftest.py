@@ -35,7 +35,7 @@ def start_lab(port: int) -> subprocess.Popen[bytes]:
     proc = subprocess.Popen([sys.executable, "-m", "slam2d", "lab", "--port", str(port)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 20
+    deadline = time.monotonic() + 120  # a loaded machine imports slowly
     while True:
         try:
             urllib.request.urlopen(url + "/api/status", timeout=1).read()

@@ -29,7 +29,7 @@ def _check_lab(proc: subprocess.Popen[str], port: int) -> None:
         assert proc.stdout is not None
         line = proc.stdout.readline()
         assert f"http://127.0.0.1:{port}/" in line
-        deadline = time.monotonic() + 20
+        deadline = time.monotonic() + 120  # a loaded machine imports slowly
         while True:
             try:
                 html = urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=1).read().decode()
@@ -38,11 +38,11 @@ def _check_lab(proc: subprocess.Popen[str], port: int) -> None:
                 assert time.monotonic() < deadline and proc.poll() is None
                 time.sleep(0.1)
         assert "slam2d lab" in html
-        page = urllib.request.urlopen(f"http://127.0.0.1:{port}/lab/simulator", timeout=5).read().decode()
+        page = urllib.request.urlopen(f"http://127.0.0.1:{port}/lab/simulator", timeout=60).read().decode()
         assert 'src="/static/js/lab.js"' in page and "cdn" not in page.lower()
     finally:
         proc.terminate()
-        proc.wait(timeout=10)
+        proc.wait(timeout=60)
 
 
 def test_lab_rejects_a_bad_port(capsys: pytest.CaptureFixture[str]) -> None:
@@ -64,7 +64,7 @@ def test_ctrl_c_stops_the_lab_promptly_even_while_a_tab_searches(artifacts: Path
         port = int(s.getsockname()[1])
     proc = subprocess.Popen([sys.executable, "-m", "slam2d", "lab", "--port", str(port)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE)
-    deadline = time.monotonic() + 20
+    deadline = time.monotonic() + 120  # a loaded machine imports slowly
     while True:
         try:
             urllib.request.urlopen(f"http://127.0.0.1:{port}/api/status", timeout=1).read()

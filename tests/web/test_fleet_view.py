@@ -92,7 +92,7 @@ def test_fleet_page_draws_the_drones(running: str, lab_server: str, page: Any, a
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.goto(f"{lab_server}/fleet?server={urllib.parse.quote(running)}")
-    page.wait_for_function("document.querySelectorAll('#drones tbody tr').length === 2", timeout=15_000)
+    page.wait_for_function("document.querySelectorAll('#drones tbody tr').length === 2", timeout=60_000)
     assert "2 drones" in page.inner_text("#status")
     page.screenshot(path=str(artifacts / "fleet.png"))
     assert errors == []

@@ -57,7 +57,7 @@ def test_warehouse_relocalises_and_draws_the_static_layer(page: Any, lab_server:
     else:
         assert text.startswith("undecided")
     # the static layer is on the canvas: occupied cells dark, free cells light (sampled pixels)
-    page.wait_for_function("window.slamLab.gridSample && window.slamLab.gridSample.occ.length > 50", timeout=5000)
+    page.wait_for_function("window.slamLab.gridSample && window.slamLab.gridSample.occ.length > 50", timeout=30_000)
     px = page.evaluate(PIXELS)
     dark = sum(v < 100 for v in px["occ"]) / len(px["occ"])
     light = sum(v > 200 for v in px["free"]) / len(px["free"])
@@ -84,7 +84,7 @@ def test_warehouse_controls(page: Any, lab_server: str) -> None:
     set_control(page, "forklifts", 3)
     page.wait_for_function("window.slamLab.counters.forklifts === 3", timeout=30_000)
     page.evaluate(f"window.slamLab.send({{type: 'param', name: 'forklifts', value: {hi + 1}}})")
-    page.wait_for_function("window.slamLab.errors.some(e => e.includes('forklifts'))", timeout=10_000)
+    page.wait_for_function("window.slamLab.errors.some(e => e.includes('forklifts'))", timeout=30_000)
     assert page.evaluate("window.slamLab.values.forklifts") == 3
     # back to the saved map
     page.locator("#ctl-start").select_option("saved map")
