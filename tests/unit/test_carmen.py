@@ -155,6 +155,34 @@ def test_bad_scans_are_errors_or_counted_skips_with_file_and_line(tmp_path: Path
         read_carmen(write(tmp_path, lines))
 
 
+@pytest.mark.parametrize("command", ["run", "lidar"])
+def test_the_commands_name_every_counted_problem(tmp_path: Path, command: str,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """``slam2d run`` / ``slam2d lidar`` on a log with NaN beams, a scan with no usable beam, a stamp going
+    backwards and a relation whose stamp is not in the log: each kind is a note with its count and first file:line
+    on stderr and a count in the JSON record, and the run goes on."""
+    import json
+
+    from slam2d.cli.main import main
+
+    lines = [*good_lines(), flaser([float("nan"), float("inf"), -1.0, 4.1], (0.2, 0.0, 0.1), 1.25),
+             flaser([81.83] * 4, (0.3, 0, 0.15), 1.35), flaser([1.2, 2.2, 3.2, 4.2], (0.4, 0, 0.2), 1.20)]
+    log = write(tmp_path, lines)
+    (tmp_path / "log.relations").write_text("1.05 1.15 0.1 0 0 0 0 0.05\n1.05 9.99 0.1 0 0 0 0 0.05\n")
+    out = tmp_path / "r.json"
+    args = ["--estimator", "lidar"] if command == "run" else ["--out", str(tmp_path / "m.png")]
+    assert main([command, "--dataset", str(log), *args, "--json", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert f"NaN/inf/negative ranges read as no return: 3; first: {log}:7: 3 NaN/inf" in err
+    assert f"a scan with no usable beam): 1; first: {log}:8: FLASER record with no usable beam" in err
+    assert f"timestamp goes backwards, kept in file order: 1; first: {log}:9:" in err
+    assert "1 of 2 relations name stamps the estimate has no pose for, left out; first: " \
+           f"{tmp_path / 'log.relations'}:2: stamp 9.990000" in err
+    rec = json.loads(out.read_text())
+    assert (rec["log_invalid_beams"], rec["log_skipped_lines"], rec["log_backwards_stamps"]) == (3, 1, 1)
+    assert (rec["relations"], rec["relations_used"]) == (2, 1)
+
+
 def test_to_log_keeps_the_original_stamps(tmp_path: Path) -> None:
     lines = [*good_lines(), flaser([1.2, 2.2, 3.2, 4.2], (0.2, 0.0, 0.1), 976052896.784509)]
     log = read_carmen(write(tmp_path, lines)).to_log()

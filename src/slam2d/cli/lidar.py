@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +46,24 @@ def load_laser_log(name: str, data_dir: str | None = None, max_steps: int | None
     if max_time_s is not None:
         max_steps = min(max_steps or log.num_steps, int(np.searchsorted(log.stamps_s, max_time_s, side="right")) - 1)
     return log.head(max_steps) if max_steps else log
+
+
+#: what each counted problem of a CARMEN log means, for the note the commands print
+_LOG_PROBLEMS = (("skipped_lines", "lines skipped (malformed, or a scan with no usable beam)"),
+                 ("invalid_beams", "NaN/inf/negative ranges read as no return"),
+                 ("backwards_stamps", "scans whose timestamp goes backwards, kept in file order"))
+
+
+def report_log_problems(log: Log, record: dict[str, Any]) -> None:
+    """Print one note per kind of problem the CARMEN reader counted (with its first file:line) to stderr, and add
+    the counts to ``record``: a skip is counted and named, never silent."""
+    examples = log.metadata.get("problem_examples", {})
+    for key, what in _LOG_PROBLEMS:
+        n = int(log.metadata.get(key, 0))
+        record[f"log_{key}"] = n
+        if n:
+            first = examples.get(key) or [""]
+            print(f"slam2d: note: {what}: {n}; first: {first[0]}", file=sys.stderr)
 
 
 def original_stamps(log: Log) -> np.ndarray:
@@ -98,12 +117,16 @@ def laser_outputs(log: Log, trajectory: np.ndarray, record: dict[str, Any], *, t
     rel = read_relations(rel_path)
     odo = se2.compose_chain(log.initial_pose, log.odometry)
     for label, poses in (("rel", trajectory), ("odometry_rel", odo)):
-        e = relation_errors(stamps, poses, rel, on_missing="skip").summary()
+        errors = relation_errors(stamps, poses, rel, on_missing="skip")
+        skipped, e = errors.skipped, errors.summary()
         record.update({f"{label}_{k}": v for k, v in e.items() if k in ("trans_mean_m", "trans_std_m",
                                                                        "rot_mean_deg", "rot_std_deg")})
     record["relations"] = len(rel)
     record["relations_used"] = int(len(rel) - e["missing"])
     record["relations_file"] = str(rel_path)
+    if e["missing"]:  # a prefix of the log (--max-steps), or a relations file of another log
+        print(f"slam2d: note: {int(e['missing'])} of {len(rel)} relations name stamps the estimate has no pose "
+              f"for, left out; first: {skipped[0]}", file=sys.stderr)
 
 
 def cmd(args: argparse.Namespace) -> int:
@@ -122,10 +145,13 @@ def cmd(args: argparse.Namespace) -> int:
     check_outputs(args, [source, args.relations], [("--out", out), ("--json", args.json),
                                                    ("--trajectory", args.trajectory)])
     log = load_laser_log(args.dataset, args.data_dir)
+    problems: dict[str, Any] = {}
+    report_log_problems(log, problems)
     overrides = {f"estimator.{k}": v for k, v in overrides_from(args).items()}
     if args.no_loops:
         overrides["estimator.loop_closure"] = "false"
     result, record = run_named("lidar", None, overrides=overrides, log=log, progress=None)
+    record.update(problems)
     laser_outputs(log, result.trajectory, record, trajectory_out=args.trajectory, map_out=out,
                   resolution_m=args.resolution, relations=args.relations,
                   draw_path=args.path)

@@ -15,7 +15,7 @@ from slam2d.cli.common import (
     print_table,
     write_json,
 )
-from slam2d.cli.lidar import laser_outputs, load_laser_log
+from slam2d.cli.lidar import laser_outputs, load_laser_log, report_log_problems
 from slam2d.config import parse_set_args
 from slam2d.eval.gps import gps_ate
 from slam2d.io.carmen import is_carmen_source
@@ -117,8 +117,10 @@ def cmd(args: argparse.Namespace) -> int:
     if args.map_in or args.map_out:
         return _cmd_session(args)
     log = Log.load(args.log) if args.log else None
+    problems: dict[str, Any] = {}
     if args.dataset and is_carmen_source(args.dataset):
         log = load_laser_log(args.dataset, args.data_dir, args.max_steps, args.max_time)
+        report_log_problems(log, problems)
     elif args.dataset:
         opts = {k: _literal(v) for k, v in parse_set_args(args.dataset_opt).items()}
         log = load_dataset(args.dataset, args.dataset_path, args.robot, data_dir_override=args.data_dir,
@@ -132,6 +134,7 @@ def cmd(args: argparse.Namespace) -> int:
         overrides["estimator.loop_closure"] = "false"
     result, record = run_named(args.estimator, args.scenario or "room", seed=args.seed,
                                overrides=overrides, log=log, progress=None)
+    record.update(problems)
     if args.dataset and log is not None:
         record["dataset"] = str(log.metadata.get("dataset", args.dataset))
         record["dataset_path"] = str(log.metadata.get("dataset_path", ""))
