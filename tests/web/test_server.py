@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import websockets
 
-from slam2d.web.app import RATE_BURST, RATE_PER_S, RateLimiter
+from slam2d.web.app import RATE_BURST, RATE_PER_S, Connection, RateLimiter
 from slam2d.web.frames import decode_frame
 from slam2d.web.pages import PAGE_BY_SLUG
 
@@ -322,6 +322,32 @@ def test_rate_limiter_token_bucket() -> None:
     assert lim.allow(0.05) is False  # half a token
     assert lim.allow(0.1) is True  # one token after 0.1 s at 10/s
     assert [lim.allow(100.0) for _ in range(4)] == [True, True, True, False]  # refills to the burst, no more
+
+
+def test_commands_queue_at_most_a_burst_while_the_session_is_behind() -> None:
+    """The receiver reads every message as it arrives; with tokens to spare but no command applied yet (a session
+    busy with a long step), it queues one burst and drops the rest with one visible message: a flood can never
+    queue minutes of work."""
+
+    class Socket:
+        def __init__(self, n: int) -> None:
+            self.inbox = [{"type": "websocket.receive", "text": json.dumps({"type": "ping"})}] * n
+            self.inbox.append({"type": "websocket.disconnect"})
+            self.sent: list[dict[str, Any]] = []
+
+        async def receive(self) -> dict[str, Any]:
+            return self.inbox.pop(0)
+
+        async def send_text(self, text: str) -> None:
+            self.sent.append(json.loads(text))
+
+    ws = Socket(RATE_BURST + 50)
+    conn = Connection(ws, None, 30, None)  # type: ignore[arg-type]  # the receiver touches neither
+    conn.limiter = RateLimiter(per_s=1e9, burst=10**6)  # only the queue's bound limits
+    asyncio.run(conn.receiver())
+    assert conn.commands.qsize() == RATE_BURST and conn.closed
+    assert [m["message"][:40] for m in ws.sent] == ["too many commands: 1 dropped (a page may"]
+    assert conn.dropped == 49  # counted for the next message
 
 
 def test_a_task_done_reaches_the_page_without_a_command(server: Any) -> None:

@@ -124,11 +124,9 @@ class Connection:
                 return
             now = time.monotonic()
             if self.limiter.allow(now):
-                try:
+                with contextlib.suppress(asyncio.QueueFull):  # full: the session is behind by a whole burst
                     self.commands.put_nowait(msg.get("text") if msg.get("text") is not None else msg.get("bytes"))
                     continue
-                except asyncio.QueueFull:  # the session is behind by a whole burst
-                    pass
             self.dropped += 1
             if now - self.dropped_notice_at >= 1.0:  # one message per second, not one per dropped command
                 self.dropped_notice_at = now
