@@ -54,16 +54,17 @@ _LOG_PROBLEMS = (("skipped_lines", "lines skipped (malformed, or a scan with no 
                  ("backwards_stamps", "scans whose timestamp goes backwards, kept in file order"))
 
 
-def report_log_problems(log: Log, record: dict[str, Any]) -> None:
-    """Print one note per kind of problem the CARMEN reader counted (with its first file:line) to stderr, and add
-    the counts to ``record``: a skip is counted and named, never silent."""
+def report_log_problems(log: Log) -> dict[str, int]:
+    """Print one note per kind of problem the CARMEN reader counted (with its first file:line) to stderr; returns
+    the counts for the result record: a skip is counted and named, never silent."""
     examples = log.metadata.get("problem_examples", {})
+    counts = {}
     for key, what in _LOG_PROBLEMS:
-        n = int(log.metadata.get(key, 0))
-        record[f"log_{key}"] = n
+        counts[f"log_{key}"] = n = int(log.metadata.get(key, 0))
         if n:
             first = examples.get(key) or [""]
             print(f"slam2d: note: {what}: {n}; first: {first[0]}", file=sys.stderr)
+    return counts
 
 
 def original_stamps(log: Log) -> np.ndarray:
@@ -145,8 +146,7 @@ def cmd(args: argparse.Namespace) -> int:
     check_outputs(args, [source, args.relations], [("--out", out), ("--json", args.json),
                                                    ("--trajectory", args.trajectory)])
     log = load_laser_log(args.dataset, args.data_dir)
-    problems: dict[str, Any] = {}
-    report_log_problems(log, problems)
+    problems = report_log_problems(log)
     overrides = {f"estimator.{k}": v for k, v in overrides_from(args).items()}
     if args.no_loops:
         overrides["estimator.loop_closure"] = "false"

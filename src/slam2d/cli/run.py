@@ -117,10 +117,10 @@ def cmd(args: argparse.Namespace) -> int:
     if args.map_in or args.map_out:
         return _cmd_session(args)
     log = Log.load(args.log) if args.log else None
-    problems: dict[str, Any] = {}
+    problems: dict[str, int] = {}
     if args.dataset and is_carmen_source(args.dataset):
         log = load_laser_log(args.dataset, args.data_dir, args.max_steps, args.max_time)
-        report_log_problems(log, problems)
+        problems = report_log_problems(log)
     elif args.dataset:
         opts = {k: _literal(v) for k, v in parse_set_args(args.dataset_opt).items()}
         log = load_dataset(args.dataset, args.dataset_path, args.robot, data_dir_override=args.data_dir,
