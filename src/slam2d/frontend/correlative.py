@@ -169,22 +169,36 @@ def _scores(grid: NDArray[np.float32], g: _Grids, pts: Array, thetas: Array, ori
 _ZERO_SIGMAS = 15.0
 
 
+def _max_cos(a0: Array, a1: Array) -> Array:
+    """The largest cosine over each angle interval [a0, a1] (a0 <= a1): 1 where it holds a multiple of 2 pi, else
+    the larger end."""
+    full = np.floor(a1 / (2 * np.pi)) >= np.ceil(a0 / (2 * np.pi))
+    return np.where(full, 1.0, np.maximum(np.cos(a0), np.cos(a1)))
+
+
 def _reachable(src: Array, g: Array, lo: Array, shape: tuple[int, int],
                cfg: CorrelativeConfig) -> tuple[tuple[int, int], tuple[int, int]]:
-    """The cells (shape, first cell) of the target's grid that matter: those within reach of a source point moved
-    by any pose of the window, plus a border where the likelihood is already zero. The grid's cost (distance
-    transform, maximum filter) follows its area, and a local map of long corridors spans far more than one scan
-    can reach; values in the reachable cells are the same as on the whole grid (same lattice, same nearby points)."""
+    """The cells (shape, first cell) of the target's grid that matter: those a source point can reach at any pose
+    of the window, plus a border where the likelihood is already zero. The grid's cost (distance transform, maximum
+    filter) follows its area, and a local map of long corridors spans far more than one scan can reach; values in
+    the reachable cells are the same as on the whole grid (same lattice, same nearby points). The reach is each
+    point's exact extent over the window's rotations (the arc's ends, or the axis it crosses), not a sweep added on
+    every side: for a 25 m scan turned by +- 0.5 rad that sweep alone was 12.5 m on each side."""
     res = cfg.resolution_m
-    moved = np.column_stack([np.cos(g[2]) * src[:, 0] - np.sin(g[2]) * src[:, 1],
-                             np.sin(g[2]) * src[:, 0] + np.cos(g[2]) * src[:, 1]]) + g[:2]
     step = cfg.coarse_cells * res  # the search's farthest offset and angle (a coarse step past the window)
     shift = (np.ceil(cfg.window_xy_m / step) + 1) * step + 2 * res
     turn = (np.ceil(cfg.window_theta_rad / cfg.coarse_theta_step_rad) + 1) * cfg.coarse_theta_step_rad
-    sweep = float(np.max(np.hypot(src[:, 0], src[:, 1]))) * turn  # arc of the farthest point
-    grow = shift + sweep + _ZERO_SIGMAS * cfg.sigma_m
-    i0 = np.maximum(np.floor((moved.min(axis=0) - grow - lo) / res).astype(np.int64), 0)
-    i1 = np.minimum(np.ceil((moved.max(axis=0) + grow - lo) / res).astype(np.int64), [shape[1] - 1, shape[0] - 1])
+    r = np.hypot(src[:, 0], src[:, 1])
+    a0 = np.arctan2(src[:, 1], src[:, 0]) + (g[2] - turn)
+    a1 = a0 + 2 * turn
+    # x = r cos(a), y = r sin(a) = r cos(a - pi/2); a minimum is minus the maximum half a turn on
+    lo_xy = np.array([-np.max(r * _max_cos(a0 - np.pi, a1 - np.pi)), -np.max(r * _max_cos(a0 + np.pi / 2,
+                                                                                          a1 + np.pi / 2))])
+    hi_xy = np.array([np.max(r * _max_cos(a0, a1)), np.max(r * _max_cos(a0 - np.pi / 2, a1 - np.pi / 2))])
+    # the coarse maxima read coarse_cells - 1 cells past a reached one: the border covers those too
+    grow = shift + _ZERO_SIGMAS * cfg.sigma_m + cfg.coarse_cells * res
+    i0 = np.maximum(np.floor((g[:2] + lo_xy - grow - lo) / res).astype(np.int64), 0)
+    i1 = np.minimum(np.ceil((g[:2] + hi_xy + grow - lo) / res).astype(np.int64), [shape[1] - 1, shape[0] - 1])
     if np.any(i1 < i0):  # the scan cannot reach the target at all: keep a small grid
         i0 = i1 = np.zeros(2, dtype=np.int64)
     return (int(i1[1] - i0[1]) + 1, int(i1[0] - i0[0]) + 1), (int(i0[0]), int(i0[1]))
