@@ -51,9 +51,9 @@ def test_the_largest_cosine_over_an_interval_matches_dense_sampling() -> None:
 @pytest.mark.parametrize("theta_window", [0.3, 0.5, 1.2])
 def test_a_wide_scan_turned_over_the_window_reads_only_cells_of_its_crop(
         monkeypatch: pytest.MonkeyPatch, theta_window: float) -> None:
-    """A 360-degree scan of 20 m in a map of 40 m, turned by the whole window: every cell the search reads lies in the crop, whose
-    matches are bit-identical to the whole grid's, and the crop is smaller than the scan's box grown by the arc of
-    its farthest point on every side (the reach before it was exact)."""
+    """A 360-degree scan of 20 m in a map of 40 m, turned by the whole window: every cell the search reads lies in
+    the crop, whose matches are bit-identical to the whole grid's, and the crop is smaller than the scan's box grown
+    by the arc of its farthest point on every side (the reach before it was exact)."""
     rng = np.random.default_rng(int(theta_window * 10))
     cfg = CorrelativeConfig(window_xy_m=0.5, window_theta_rad=theta_window)
     ang = rng.uniform(-np.pi, np.pi, 600)
