@@ -30,17 +30,9 @@ marker read again long after a loop-like solve (:mod:`slam2d.graph.lidar_markers
 Every scan's pose is its keyframe's estimate composed with its tracked pose relative to that keyframe, so the whole
 trajectory follows the graph. Steps without a scan are placed by odometry.
 
-**Lifelong mode** (``layers`` set, ``--estimator lidar-lifelong``): the map is the static layer of
-:mod:`slam2d.maps.layers`, and every scan is localised against it (a fixed number of points, a lookup per point, no
-search) from the odometry guess; points the layer labels dynamic take no part in the match and never enter the
-static layer (they go to the decaying dynamic layer). A scan becomes a keyframe only where no keyframe lies within
-``coverage_m`` (keyframe culling by coverage: in mapped ground nothing is added, so keyframes, the graph and the
-layers grow with the mapped area, never with time). Loop closure is off in this mode: a revisit is matched against
-the map it made the first time, which bounds the error by the map's own; correcting a map drawn with drift would
-need the layers re-drawn from moved keyframes, which this mode does not do. Floor markers whose positions were
-surveyed (``surveyed_markers``) instead keep that drift out of the map: each reading corrects the matched pose
-before the scan is drawn (:mod:`slam2d.graph.lidar_lifelong`); unsurveyed markers can be mapped on their first
-sighting (``map_unsurveyed_markers``), which pins later passes to that first pass, drift included.
+**Lifelong mode** (``layers`` set, ``--estimator lidar-lifelong``): every scan is localised against the static layer
+of :mod:`slam2d.maps.layers`, keyframes are culled by coverage, loop closure is off (:mod:`slam2d.graph.lidar_lifelong`
+says how and why).
 """
 
 from __future__ import annotations
@@ -315,11 +307,10 @@ class LidarSLAM(EstimatorLifecycle):
 
     # ------------------------------------------------------------------ loop work, bounded per scan
     def _loop_work(self, verifications: int, *, flush: bool = False) -> None:
-        """One scan's share of the loop work: a whole-graph Gauss-Newton iteration if a loop still owes some,
-        ``verifications`` verification stages of queued candidates and more while the scan's CPU time plus the
-        next stage's predicted cost (:class:`~slam2d.graph.lidar_loops.StageCosts`) is under ``loop_budget_ms``,
-        and the decisions that are due entered (``flush``: everything now). No scan pays for a whole search (a 30 Hz
-        lidar leaves 33 ms per scan).
+        """One scan's share of the loop work: a whole-graph Gauss-Newton iteration if a loop still owes some, the
+        decisions that are due entered (``flush``: everything now), ``verifications`` verification stages of queued
+        candidates and more while the scan's CPU time plus the next stage's predicted cost
+        (:class:`~slam2d.graph.lidar_loops.StageCosts`) is under ``loop_budget_ms``: no scan pays for a whole search.
         Schedule independence: a candidate is verified against the keyframe poses of the moment it was queued,
         and its decision enters the graph exactly ``loop_queue`` scans after that moment (a candidate still
         unverified then is finished at once), so the loops and the trajectory do not depend on how the stages
@@ -331,6 +322,8 @@ class LidarSLAM(EstimatorLifecycle):
             # converged (the step changed the cost too little): the rest of the owed iterations are not needed
             self._full_pending = 0 if summary.termination != "max iterations" else self._full_pending - 1
             moved = True
+        # due decisions enter first, so that the budget below counts their graph update (10-19 ms a loop on fr079)
+        events, entered = self._enter_due(flush)
         done, budget = 0, self.config.loop_budget_ms  # verification stages run in this scan, CPU budget (ms)
         while (self._active or self._queue) and (
                 done < verifications or flush or (self._active or self._queue[0])[3] <= self.steps
@@ -356,21 +349,29 @@ class LidarSLAM(EstimatorLifecycle):
                     self.loops_retried += 1
                     continue
                 self._decided.append((due, *self._decide(c, k, chk.transform, chk.information, chk.ok, snap)))
-        events: list[LoopEvent] = []
-        while self._decided and (flush or self._decided[0][0] <= self.steps):
-            _, evs, loops = self._decided.popleft()
-            events += evs
-            for c, k, t_ck, info in loops:
-                self.graph.add_loop(c, k, t_ck, info)
-                self._last_loop_kf = max(self._last_loop_kf, k)
-                moved = True
-                self._full_pending = self.config.loop_full_iterations
+        late, entered_late = self._enter_due(flush)  # those of candidates finished at once in this scan
+        events, moved = events + late, moved or entered or entered_late
         self.loops_accepted += sum(e.accepted for e in events)
         self.loops_rejected += sum(not e.accepted for e in events)
         self._new_loops = tuple(events)
         if moved:  # the current pose follows its keyframe
             self._version += 1
             self._pose = se2.compose(self.graph.poses[self._owner[-1]], self._rel[-1])
+
+    def _enter_due(self, flush: bool) -> tuple[list[LoopEvent], bool]:
+        """Enter the decisions due by now (``flush``: all) in the order made: their events, whether a loop entered."""
+        assert self.graph is not None
+        events: list[LoopEvent] = []
+        entered = False
+        while self._decided and (flush or self._decided[0][0] <= self.steps):
+            _, evs, loops = self._decided.popleft()
+            events += evs
+            for c, k, t_ck, info in loops:
+                self.graph.add_loop(c, k, t_ck, info)
+                self._last_loop_kf = max(self._last_loop_kf, k)
+                entered = True
+                self._full_pending = self.config.loop_full_iterations
+        return events, entered
 
     def _decide(self, c: int, k: int, t_ck: Array, info: Array, ok: bool,
                 snap: Array) -> tuple[list[LoopEvent], list[tuple[int, int, Array, Array]]]:

@@ -163,7 +163,8 @@ class LidarSLAMConfig:
     search (:meth:`slam2d.graph.lidar.LidarSLAM._check_stages`)."""
     loop_budget_ms: float = 27.0
     """after its ``loop_verify_per_scan`` stages, a scan runs another while its own CPU time (the thread's, from the
-    start of ``step``) plus the predicted cost of that stage stays under this (ms; 0: never more). The prediction is
+    start of ``step``, including the graph update of the loops whose decisions are due in it, which enter before its
+    stages) plus the predicted cost of that stage stays under this (ms; 0: never more). The prediction is
     the longest of the last 4 stages of the same kind (grid, scores, normals, icp, mask): a 1 ms slice of scores
     still fits where a 10 ms mask would not. Results do not depend on it (decisions enter the graph at fixed scans,
     a candidate not verified by then is finished at once); latency does: stages fill the scans whose tracking left

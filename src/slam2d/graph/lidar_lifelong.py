@@ -1,4 +1,16 @@
-"""Surveyed floor markers in the lidar back end's lifelong mode (``LidarSLAMConfig.surveyed_markers``).
+"""The lidar back end's lifelong mode (``layers`` set, ``--estimator lidar-lifelong``) and its surveyed floor markers
+(``LidarSLAMConfig.surveyed_markers``).
+
+The map is the static layer of :mod:`slam2d.maps.layers`, and every scan is localised against it (a fixed number of
+points, a lookup per point, no search) from the odometry guess; points the layer labels dynamic take no part in the
+match and never enter the static layer (they go to the decaying dynamic layer). A scan becomes a keyframe only where
+no keyframe lies within ``coverage_m`` (keyframe culling by coverage: in mapped ground nothing is added, so
+keyframes, the graph and the layers grow with the mapped area, never with time). Loop closure is off in this mode: a
+revisit is matched against the map it made the first time, which bounds the error by the map's own; correcting a map
+drawn with drift would need the layers re-drawn from moved keyframes, which this mode does not do. Surveyed floor
+markers instead keep that drift out of the map: each reading corrects the matched pose before the scan is drawn
+(below); unsurveyed markers can be mapped on their first sighting (``map_unsurveyed_markers``), which pins later
+passes to that first pass, drift included.
 
 The lifelong mode localises every scan against its static layer, so its error is the layer's: the first pass
 draws the layer with the drift of scan matching (tens of centimetres over a 100 m warehouse) and every later pass
