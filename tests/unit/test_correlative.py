@@ -81,9 +81,39 @@ def test_a_wide_scan_turned_over_the_window_reads_only_cells_of_its_crop(
         grow = 1.05 + np.hypot(src[:, 0], src[:, 1]).max() * (theta_window + 0.02) + 1.5  # shift + sweep + border
         old = at_guess.max(axis=0) - at_guess.min(axis=0) + 2 * grow
         assert cells[0] * cells[1] < 0.8 * (old[0] / 0.05) * (old[1] / 0.05)
-        monkeypatch.setattr(corr, "_reachable", reachable)
-        cropped = correlative_match(src, tgt, guess, cfg)
-        monkeypatch.setattr(corr, "_reachable", lambda s, g, lo, shape, c: (shape, (0, 0)))
-        full = correlative_match(src, tgt, guess, cfg)
-        assert np.array_equal(cropped.transform, full.transform)
-        assert cropped.score == full.score and cropped.ambiguity == full.ambiguity
+        _crop_matches_whole_grid(monkeypatch, src, tgt, guess, cfg)
+
+
+def _crop_matches_whole_grid(monkeypatch: pytest.MonkeyPatch, src: np.ndarray, tgt: np.ndarray, guess: np.ndarray,
+                             cfg: CorrelativeConfig) -> None:
+    """The match on the cropped grid is bit-identical to the match on the whole grid."""
+    reachable = corr._reachable
+    cropped = correlative_match(src, tgt, guess, cfg)
+    monkeypatch.setattr(corr, "_reachable", lambda s, g, lo, shape, c: (shape, (0, 0)))
+    full = correlative_match(src, tgt, guess, cfg)
+    monkeypatch.setattr(corr, "_reachable", reachable)
+    assert np.array_equal(cropped.transform, full.transform)
+    assert cropped.score == full.score and cropped.ambiguity == full.ambiguity
+
+
+def test_correlative_grid_cropped_to_the_scans_reach_gives_the_whole_grids_results(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The likelihood grid covers only the cells a moved scan point can reach (plus a zero border): on a long
+    corridor map with clutter the crop is less than half the grid, and every match is bit-identical to the whole
+    grid's (same lattice, and outside the border the likelihood is exactly zero in float32)."""
+    rng = np.random.default_rng(0)
+    x = np.arange(-40, 40, 0.05)
+    walls = np.vstack([np.stack([x, np.full_like(x, s)], -1) for s in (-1.5, 1.5)])
+    clutter = np.column_stack([rng.uniform(-40, 40, 300), rng.uniform(-4, 4, 300)])
+    tgt = np.vstack([walls, clutter]) + rng.normal(0, 0.01, (len(walls) + 300, 2))
+    cfg = CorrelativeConfig()
+    reachable = corr._reachable
+    for _ in range(10):
+        pose = np.array([rng.uniform(-20, 20), rng.uniform(-0.5, 0.5), rng.uniform(-0.2, 0.2)])
+        src = se2.inverse_transform_points(pose, tgt[np.abs(tgt[:, 0] - pose[0]) < 8])
+        guess = pose + np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2)])
+        lo = tgt.min(axis=0) - 0.5
+        whole = (int((tgt[:, 1].max() - lo[1]) / 0.05) + 11, int((tgt[:, 0].max() - lo[0]) / 0.05) + 11)
+        cells, _ = reachable(src, guess, lo, whole, cfg)
+        assert cells[0] * cells[1] < 0.5 * whole[0] * whole[1]
+        _crop_matches_whole_grid(monkeypatch, src, tgt, guess, cfg)

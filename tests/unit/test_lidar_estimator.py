@@ -243,33 +243,3 @@ def test_the_wide_retry_waits_for_driving_since_the_newest_loop() -> None:
         assert est._driven_m[-1] < 100.0
         retried.append(est.loops_retried)
     assert retried[0] > retried[1] > retried[2] == 0
-
-
-def test_correlative_grid_cropped_to_the_scans_reach_gives_the_whole_grids_results(
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    """The likelihood grid covers only the cells a moved scan point can reach (plus a zero border): on a long
-    corridor map with clutter the crop is less than half the grid, and every match is bit-identical to the whole
-    grid's (same lattice, and outside the border the likelihood is exactly zero in float32)."""
-    import slam2d.frontend.correlative as corr
-
-    rng = np.random.default_rng(0)
-    x = np.arange(-40, 40, 0.05)
-    walls = np.vstack([np.stack([x, np.full_like(x, s)], -1) for s in (-1.5, 1.5)])
-    clutter = np.column_stack([rng.uniform(-40, 40, 300), rng.uniform(-4, 4, 300)])
-    tgt = np.vstack([walls, clutter]) + rng.normal(0, 0.01, (len(walls) + 300, 2))
-    cfg = CorrelativeConfig()
-    reachable = corr._reachable
-    for _ in range(10):
-        pose = np.array([rng.uniform(-20, 20), rng.uniform(-0.5, 0.5), rng.uniform(-0.2, 0.2)])
-        src = se2.inverse_transform_points(pose, tgt[np.abs(tgt[:, 0] - pose[0]) < 8])
-        guess = pose + np.array([rng.uniform(-0.5, 0.5), rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2)])
-        lo = tgt.min(axis=0) - 0.5
-        whole = (int((tgt[:, 1].max() - lo[1]) / 0.05) + 11, int((tgt[:, 0].max() - lo[0]) / 0.05) + 11)
-        cells, _ = reachable(src, guess, lo, whole, cfg)
-        assert cells[0] * cells[1] < 0.5 * whole[0] * whole[1]
-        monkeypatch.setattr(corr, "_reachable", reachable)
-        cropped = correlative_match(src, tgt, guess, cfg)
-        monkeypatch.setattr(corr, "_reachable", lambda s, g, lo, shape, c: (shape, (0, 0)))
-        full = correlative_match(src, tgt, guess, cfg)
-        assert np.array_equal(cropped.transform, full.transform)
-        assert cropped.score == full.score and cropped.ambiguity == full.ambiguity
