@@ -322,7 +322,7 @@ class LidarSLAM(EstimatorLifecycle):
             # converged (the step changed the cost too little): the rest of the owed iterations are not needed
             self._full_pending = 0 if summary.termination != "max iterations" else self._full_pending - 1
             moved = True
-        # due decisions enter first, so that the budget below counts their graph update (10-19 ms a loop on fr079)
+        # due decisions enter first, so that the budget below counts their graph update (7-13 ms a scan on fr079)
         events, entered = self._enter_due(flush)
         done, budget = 0, self.config.loop_budget_ms  # verification stages run in this scan, CPU budget (ms)
         while (self._active or self._queue) and (
