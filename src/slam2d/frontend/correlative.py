@@ -191,10 +191,12 @@ def _reachable(src: Array, g: Array, lo: Array, shape: tuple[int, int],
     r = np.hypot(src[:, 0], src[:, 1])
     a0 = np.arctan2(src[:, 1], src[:, 0]) + (g[2] - turn)
     a1 = a0 + 2 * turn
-    # x = r cos(a), y = r sin(a) = r cos(a - pi/2); a minimum is minus the maximum half a turn on
-    lo_xy = np.array([-np.max(r * _max_cos(a0 - np.pi, a1 - np.pi)), -np.max(r * _max_cos(a0 + np.pi / 2,
-                                                                                          a1 + np.pi / 2))])
-    hi_xy = np.array([np.max(r * _max_cos(a0, a1)), np.max(r * _max_cos(a0 - np.pi / 2, a1 - np.pi / 2))])
+
+    def farthest(direction: float) -> float:  # the farthest any point gets along the unit vector at ``direction``
+        return float(np.max(r * _max_cos(a0 - direction, a1 - direction)))
+
+    lo_xy = -np.array([farthest(np.pi), farthest(-np.pi / 2)])  # x = r cos(a), y = r cos(a - pi/2)
+    hi_xy = np.array([farthest(0.0), farthest(np.pi / 2)])
     # the coarse maxima read coarse_cells - 1 cells past a reached one: the border covers those too
     grow = shift + _ZERO_SIGMAS * cfg.sigma_m + cfg.coarse_cells * res
     i0 = np.maximum(np.floor((g[:2] + lo_xy - grow - lo) / res).astype(np.int64), 0)
