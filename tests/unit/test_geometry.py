@@ -186,3 +186,24 @@ def test_compose_chain_equals_sequential_composition():
     assert got.shape == (201, 3)
     np.testing.assert_allclose(got[:, :2], np.array(seq)[:, :2], atol=1e-9)
     np.testing.assert_allclose(angle_diff(got[:, 2], np.array(seq)[:, 2]), 0.0, atol=1e-9)
+
+
+def test_a_start_frame_covariance_turned_into_the_between_frame_weighs_every_displacement_as_before():
+    """An ICP result T_i_j with covariance C over [x, y, theta] in pose i's frame enters a between factor, whose
+    error is turned by T's angle: with the information turned by covariance_in_frame, the factor's chi-square of
+    any displacement of j (in i's frame) equals that displacement's Mahalanobis distance under C. Without the turn
+    a corridor's long axis would be weighed as its short one after a 90-degree turn."""
+    from slam2d.graph.factors import between_error
+
+    rng = np.random.default_rng(3)
+    cov = np.diag([0.04**2, 0.002**2, 0.001**2])  # a corridor along i's x: long along it, sure across
+    for th in (0.0, 0.7, np.pi / 2, -2.5, np.pi):
+        z = np.array([1.0, -0.4, th])
+        info = se2.covariance_in_frame(np.linalg.inv(cov), th)
+        np.testing.assert_allclose(info, np.linalg.inv(se2.covariance_in_frame(cov, th)), rtol=1e-9)
+        for d in rng.normal(0.0, 0.02, (20, 3)):
+            e = between_error(np.zeros(3), z + d, z)
+            assert e @ info @ e == pytest.approx(d @ np.linalg.inv(cov) @ d, rel=1e-9)
+        if abs(np.sin(th)) > 0.5:  # unturned, one sigma along the corridor weighs as ten across it, or more
+            e = between_error(np.zeros(3), z + [0.04, 0.0, 0.0], z)
+            assert e @ np.linalg.inv(cov) @ e > 10.0

@@ -9,8 +9,11 @@ from typing import TypeVar
 import numpy as np
 import pytest
 
+from slam2d.frontend import icp as icp_module
 from slam2d.frontend.correlative import correlative_match, correlative_stages, run_stages
 from slam2d.geometry import se2
+from slam2d.graph import lidar_loops
+from slam2d.graph.factors import between_error
 from slam2d.graph.lidar_config import LidarSLAMConfig
 from slam2d.graph.lidar_loops import at_window_edge, confirmed_mask, verify_loop, verify_loop_stages, wide_correlative
 from slam2d.models.lidar import cast_rays
@@ -204,3 +207,28 @@ def test_a_staged_loop_check_pauses_in_its_search_and_before_icp_and_equals_the_
     assert pauses == cfg.loop_retry_stages + 2 and wide.ok  # the search's stages, then the normals', then ICP's
     at_once = verify_loop(pts, target, guess, cfg, wide=True)
     assert np.array_equal(at_once.transform, wide.transform) and at_once.chi2 == wide.chi2
+
+
+@pytest.mark.parametrize("turn", [0.0, np.pi / 2, 2.0])
+def test_a_loops_information_weighs_a_displacement_in_the_old_frame_as_its_icp_covariance_whatever_the_new_heading(
+        turn: float, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The loop enters the graph as a between factor, whose error is in the new keyframe's frame; its ICP
+    covariance is over x, y in the old keyframe's. The same loop seen from a new frame turned by ``turn`` must
+    weigh a displacement along the corridor (old x) as the covariance does: loosely (it was entered unturned, which
+    after a 90-degree turn weighed it as the sure direction across)."""
+    cov = np.diag([0.04**2, 0.002**2, 0.001**2])  # ICP's covariance, made long along the corridor
+
+    def long_icp(*args: object, **kw: object) -> icp_module.ICPResult:
+        return replace(icp_module.icp(*args, **kw), covariance=cov)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(lidar_loops, "icp", long_icp)
+    cfg = LidarSLAMConfig()
+    pts, target, _, truth = _return(np.random.default_rng(0), posts=False)
+    turned = np.array([0.0, 0.0, turn])  # the new keyframe's frame turned: its points turn back
+    chk = verify_loop(se2.inverse_transform_points(turned, pts), target, se2.compose(truth, turned), cfg)
+    assert chk.ok, chk.reason
+    floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
+    want = np.linalg.inv(cov + floor)
+    for d in ([0.03, 0.0, 0.0], [0.0, 0.03, 0.0], [0.0, 0.0, 0.01]):
+        e = between_error(np.zeros(3), chk.transform + d, chk.transform)
+        assert e @ chk.information @ e == pytest.approx(np.asarray(d) @ want @ np.asarray(d), rel=1e-9)

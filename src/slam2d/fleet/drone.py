@@ -74,9 +74,7 @@ def keyframe_edge(z_scan: Array, z_odo: Array, cov_odo: Array) -> tuple[Array, A
     z = z_odo + np.linalg.solve(info, info_scan @ d)
     z[2] = float(np.arctan2(np.sin(z[2]), np.cos(z[2])))
     # the between factor's translation error is in the END frame: rotate the covariance (as odometry_factor does)
-    c, s = np.cos(z[2]), np.sin(z[2])
-    r_t = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-    cov_e = r_t @ np.linalg.inv(info) @ r_t.T
+    cov_e = se2.covariance_in_frame(np.linalg.inv(info), z[2])
     return z, np.asarray(np.linalg.inv(cov_e), np.float64)
 
 

@@ -237,3 +237,17 @@ def rotation_matrix(theta: ArrayLike) -> Array:
     t = _f(theta)
     c, s = np.cos(t), np.sin(t)
     return matrix_from_rows([c, -s], [s, c])
+
+
+def covariance_in_frame(cov: ArrayLike, theta: ArrayLike) -> Array:
+    """An ``[x, y, theta]`` covariance (or information) matrix given in one frame, expressed in a frame turned by
+    ``theta`` from it: ``J C J^T`` with ``J = diag(R(theta)^T, 1)``. A ``between`` factor's translation error is in
+    the frame of its END pose (g2o EdgeSE2: ``R(dtheta)^T (...)``), so a relative pose whose covariance is over x, y
+    in the START frame (odometry, an ICP result T_i_j) enters with ``theta = dtheta``: unturned, a covariance long
+    along a corridor in the start frame would lie across it after a 90-degree turn. Shapes: (...,3,3),(...) ->
+    (...,3,3)."""
+    t = _f(theta)
+    c, s = np.cos(t), np.sin(t)
+    one, zero = np.ones_like(c), np.zeros_like(c)
+    j = matrix_from_rows([c, s, zero], [-s, c, zero], [zero, zero, one])
+    return np.asarray(j @ _f(cov) @ np.swapaxes(j, -1, -2), dtype=np.float64)

@@ -72,13 +72,6 @@ def scan_points(scan: Scan, min_range: float, max_range: float) -> Array:
     return np.stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])], axis=-1)
 
 
-def _relative_cov(cov: Array, frame_theta: float) -> Array:
-    """A world-frame [x, y, theta] covariance expressed in a frame rotated by ``frame_theta``."""
-    c, s = np.cos(frame_theta), np.sin(frame_theta)
-    j = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-    return j @ cov @ j.T
-
-
 class LidarSLAM(EstimatorLifecycle):
     """The lidar SLAM back end (see the module docstring)."""
 
@@ -230,7 +223,7 @@ class LidarSLAM(EstimatorLifecycle):
         else:
             prev = self.graph.poses[-1]
             floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
-            info = np.asarray(np.linalg.inv(_relative_cov(cov, float(prev[2])) + floor), np.float64)
+            info = np.asarray(np.linalg.inv(se2.covariance_in_frame(cov, float(prev[2])) + floor), np.float64)
             self.graph.add_step(k, np.array([k - 1]), np.array([k]), se2.between(prev, pose)[None], info[None])
         assert scan is not None
         self._kf_step.append(index)
@@ -286,7 +279,7 @@ class LidarSLAM(EstimatorLifecycle):
             return
         prev = self.graph.poses[-1]
         floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
-        info = np.asarray(np.linalg.inv(_relative_cov(cov, float(prev[2])) + floor), dtype=np.float64)
+        info = np.asarray(np.linalg.inv(se2.covariance_in_frame(cov, float(prev[2])) + floor), dtype=np.float64)
         before = self.graph.local_solves, self.graph.full_solves
         self.graph.add_step(k, np.array([k - 1]), np.array([k]), np.asarray(z)[None], info[None])
         if (self.graph.local_solves, self.graph.full_solves) != before:
@@ -587,7 +580,7 @@ class LidarSLAM(EstimatorLifecycle):
             self._kf_points.append(scan_points(scans[k], cfg.min_range_m, cfg.max_range_m))
             self._kf_scans.append(scans[k])
         n = len(order)
-        cov = _relative_cov(np.asarray(np.linalg.inv(information), dtype=np.float64), float(poses[order[-1], 2]))
+        cov = se2.covariance_in_frame(np.linalg.inv(information), float(poses[order[-1], 2]))
         self.graph.add_step(n, np.array([n - 1]), np.array([n]), se2.between(poses[order[-1]], pose)[None],
                             np.asarray(np.linalg.inv(cov), dtype=np.float64)[None])
         self._kf_step.append(step_index)

@@ -130,7 +130,8 @@ def verify_loop_stages(pts: Array, target: Array, guess: Array, cfg: LidarSLAMCo
     floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
     info = np.asarray(np.linalg.inv(res.covariance + floor), dtype=np.float64)
     e = se2.local(res.transform, cm.transform)
-    out = replace(base, transform=res.transform, information=info, chi2=float(e @ info @ e))
+    out = replace(base, transform=res.transform, chi2=float(e @ info @ e),
+                  information=se2.covariance_in_frame(info, res.transform[2]))  # in the between factor's frame
     if out.chi2 > cfg.loop_chi2:
         return out.rejected("chi2")
     if cfg.loop_wide_window_m > 0 and not unique_in_wide_window(pts, target, res.transform, cfg):

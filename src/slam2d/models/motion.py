@@ -112,11 +112,7 @@ def odometry_factor(u: ArrayLike, noise: MotionNoise, *, floor_var: float = 0.0)
     Shapes: (...,3) -> (...,3), (...,3,3).
     """
     z = np.array(u, dtype=np.float64)
-    cov = odometry_covariance(z, noise)
-    c, s = np.cos(z[..., 2]), np.sin(z[..., 2])
-    one, zero = np.ones_like(c), np.zeros_like(c)
-    r_t = se2.matrix_from_rows([c, s, zero], [-s, c, zero], [zero, zero, one])
-    cov_e = r_t @ cov @ np.swapaxes(r_t, -1, -2) + floor_var * np.eye(3)
+    cov_e = se2.covariance_in_frame(odometry_covariance(z, noise), z[..., 2]) + floor_var * np.eye(3)
     return z, np.asarray(np.linalg.inv(cov_e), dtype=np.float64)
 
 
