@@ -330,8 +330,9 @@ class JointGraph:
                 return None
         else:
             info = free_axis(info, self.config.sliding_sigma_m)
+        # ICP's covariance is over x, y in c's frame; the between factor's error is in n's: turn it
         return LoopRow(int(self.node_drone[c]), int(self.node_kf[c]), int(self.node_drone[n]), int(self.node_kf[n]),
-                       res.transform, info, stamp)
+                       res.transform, se2.covariance_in_frame(info, res.transform[2]), stamp)
 
     # ------------------------------------------------------------------ optimisation
     def needs_solve(self) -> bool:
