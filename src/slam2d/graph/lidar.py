@@ -84,6 +84,7 @@ class LidarSLAM(EstimatorLifecycle):
         self._lifecycle_reset()
         self._pose = np.asarray(initial_pose, dtype=np.float64).copy()
         self._cov = np.zeros((3, 3))
+        self._motion = np.zeros(3)  # the last tracked motion (scan to scan): the steady guess repeats it
         self.graph: IncrementalPoseGraph | None = None  # created with the first keyframe
         self._kf_step: list[int] = []  # step index of each keyframe
         self._kf_points: list[Array] = []  # scan-frame points of each keyframe
@@ -164,7 +165,7 @@ class LidarSLAM(EstimatorLifecycle):
             self._add_keyframe(step.index, guess, pts, step.scan, None, np.zeros((3, 3)))
             return
         tr = track_scan(pts, self._local_target(), guess, cfg.icp, cfg.min_fitness, cfg.track_rematch_rmse_m,
-                        cfg.track_correlative, cfg.track_rematch_points)
+                        cfg.track_correlative, cfg.track_rematch_points, se2.compose(self._pose, self._motion))
         self.rematches += tr.replaced
         res = tr.match
         if good_fit(res, cfg.min_fitness, np.inf):
@@ -172,6 +173,7 @@ class LidarSLAM(EstimatorLifecycle):
         else:
             self.tracking_failures += 1
             pose, cov = guess, np.diag([0.2, 0.2, 0.05]) ** 2  # the odometry guess, loosely
+        self._motion = se2.between(self._pose, pose)
         last = self.graph.poses[-1]
         d = se2.between(last, pose)
         if np.hypot(d[0], d[1]) >= cfg.keyframe_distance_m or abs(d[2]) >= cfg.keyframe_angle_rad:

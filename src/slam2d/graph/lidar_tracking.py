@@ -13,13 +13,14 @@ it fits better (more matches at a residual no worse, or a residual within the li
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from slam2d.frontend.correlative import CorrelativeConfig, correlative_match
 from slam2d.frontend.icp import ICPConfig, ICPResult, ICPTarget, icp
+from slam2d.geometry import se2
 
 __all__ = ["TrackResult", "track_scan"]
 
@@ -54,19 +55,34 @@ def _better(new: ICPResult, old: ICPResult, min_fitness: float, max_rmse_m: floa
     return new.fitness >= old.fitness and new.rmse_m <= old.rmse_m
 
 
+def _slid(res: ICPResult, start: Array, correlative: CorrelativeConfig) -> bool:
+    """Did ICP end farther from its start than the re-match window reaches? No ICP basin is that wide: it slid
+    into another alignment (a corridor turned end for end fits as well)."""
+    d = se2.local(start, res.transform)
+    return bool(np.hypot(d[0], d[1]) > correlative.window_xy_m or abs(d[2]) > correlative.window_theta_rad)
+
+
 def track_scan(pts: Array, target: ICPTarget, guess: Array, icp_config: ICPConfig, min_fitness: float,
-               rematch_rmse_m: float, correlative: CorrelativeConfig, points: int) -> TrackResult:
+               rematch_rmse_m: float, correlative: CorrelativeConfig, points: int,
+               steady: Array | None = None) -> TrackResult:
     """Match scan points ``pts`` (N,2) to the local map ``target`` from ``guess`` (3,) (world poses); when the fit
     is poor, re-match from a correlative search over ``correlative``'s window (with at most ``points`` of the scan,
-    evenly spread; 0: no re-match)."""
+    evenly spread; 0: no re-match). A fit that slid farther from the guess than that window is not trusted: ICP
+    starts again from ``steady`` (the last motion repeated), which wins when it fits and stays near its start;
+    else the re-match runs as for a poor fit."""
     res = icp(pts, target, initial=guess, config=icp_config)
-    if points <= 0 or good_fit(res, min_fitness, rematch_rmse_m):
+    slid = _slid(res, guess, correlative)
+    if points <= 0 or (good_fit(res, min_fitness, rematch_rmse_m) and not slid):
         return TrackResult(res, False, False)
+    if slid and steady is not None:
+        alt = icp(pts, target, initial=steady, config=icp_config)
+        if good_fit(alt, min_fitness, rematch_rmse_m) and not _slid(alt, steady, correlative):
+            return TrackResult(alt, True, True)
     sel = pts[np.unique(np.linspace(0, len(pts) - 1, min(len(pts), points)).astype(np.int64))]
     near = target.points[np.einsum("ij,ij->i", target.points - guess[:2], target.points - guess[:2])
                          <= (np.max(np.hypot(pts[:, 0], pts[:, 1])) + correlative.window_xy_m) ** 2]
     cm = correlative_match(sel, near, guess, correlative)
     again = icp(pts, target, initial=cm.transform, config=icp_config)
-    if _better(again, res, min_fitness, rematch_rmse_m):
+    if _better(again, replace(res, converged=False) if slid else res, min_fitness, rematch_rmse_m):
         return TrackResult(again, True, True)
     return TrackResult(res, True, False)
