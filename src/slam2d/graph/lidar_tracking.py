@@ -9,6 +9,12 @@ no loop recovered it. A fit that bad (residual above ``track_rematch_rmse_m``, t
 redone: an exhaustive correlative search (:mod:`slam2d.frontend.correlative`) of the scan against the local map
 over a window that covers such a guess error, then ICP from its best pose; the re-match replaces the first one when
 it fits better (more matches at a residual no worse, or a residual within the limit where the first was not).
+
+A fit can also be good and wrong: on mit-csail the odometry stalls for scans 1579-1582 while tracking follows the
+turn, then reports the whole 1.49 rad at scan 1583, on top; from that guess ICP slid 1.9 rad, into a corridor's turned
+alignment, with a 3 mm residual, and the track ended 180 degrees off. A fit farther from its guess than the
+re-match window reaches is not trusted: ICP starts again from the steady guess (the last tracked motion repeated),
+which wins when it fits and stays near its start, else the re-match runs.
 """
 
 from __future__ import annotations
