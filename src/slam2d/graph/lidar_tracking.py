@@ -12,9 +12,9 @@ it fits better (more matches at a residual no worse, or a residual within the li
 
 A fit can also be good and wrong: on mit-csail the odometry stalls for scans 1579-1582 while tracking follows the
 turn, then reports the whole 1.49 rad at scan 1583, on top; from that guess ICP slid 1.9 rad, into a corridor's turned
-alignment, with a 3 mm residual, and the track ended 180 degrees off. A fit farther from its guess than the
-re-match window reaches is not trusted: ICP starts again from the steady guess (the last tracked motion repeated),
-which wins when it fits and stays near its start, else the re-match runs.
+alignment, with a 3 mm residual (in a run with ``loop_every=3`` the track ended 180 degrees off). A fit farther from
+its guess than the re-match window reaches is not trusted: ICP starts again from the steady guess (the last tracked
+motion repeated), which wins when it fits and stays near its start, else the re-match runs.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ class TrackResult:
 
     match: ICPResult
     rematched: bool
-    """a correlative re-match was run (the first fit was poor)."""
+    """the first fit was redone (it was poor, or it slid): from the steady guess or by a correlative re-match."""
     replaced: bool
     """... and its result replaced the first fit."""
 
