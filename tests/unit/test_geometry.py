@@ -22,6 +22,7 @@ from slam2d.geometry import (
     wrap_angle,
     wrap_angle_scalar,
 )
+from slam2d.graph.factors import between_error
 from slam2d.testing import assert_jacobian_matches, numerical_jacobian
 
 PAIRS = _jacobians.REGISTRY
@@ -193,8 +194,6 @@ def test_a_start_frame_covariance_turned_into_the_between_frame_weighs_every_dis
     error is turned by T's angle: with the information turned by covariance_in_frame, the factor's chi-square of
     any displacement of j (in i's frame) equals that displacement's Mahalanobis distance under C. Without the turn
     a corridor's long axis would be weighed as its short one after a 90-degree turn."""
-    from slam2d.graph.factors import between_error
-
     rng = np.random.default_rng(3)
     cov = np.diag([0.04**2, 0.002**2, 0.001**2])  # a corridor along i's x: long along it, sure across
     for th in (0.0, 0.7, np.pi / 2, -2.5, np.pi):
