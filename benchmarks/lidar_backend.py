@@ -12,13 +12,15 @@ the relations less than 1 s apart alone (local accuracy; ``lidar_relations_check
 with a raw-scan ICP and with odometry). ``--repeat N`` runs the logs N times, taking turns (a shared machine's speed
 drifts within minutes, so each log's runs meet different moments): the timing columns are the medians, their range
 is printed, and every other column must be identical between the runs (the results are deterministic; the benchmark
-stops when they are not). ``--set FIELD=VALUE`` (repeatable)
-overrides a ``LidarSLAMConfig`` field on the logs, to measure how much a harmless change moves the relation error.
+stops when they are not). ``--set FIELD=VALUE`` (repeatable) overrides a ``LidarSLAMConfig`` field on the logs and the
+simulated drives, to measure how much a harmless change moves the relation error.
 Latency and real-time factor are given twice: wall clock, and CPU time of the thread (what they are on a core of
 their own; on a shared machine the wall clock also counts the waits for a core). Simulation: ATE of the lidar
 estimator vs dead reckoning on room and warehouse, and accepted / false loops over ``--sim-seeds`` warehouse
 seeds (identical aisles, a 1200-step drive that revisits them; the runner counts a loop false when its two poses
-are truly > 16 m apart or its measurement is off the truth by > 1 m).
+are truly > 16 m apart or its measurement is off the truth by > 1 m); and the drift along one aisle: the largest
+error of the floor markers' estimated positions after a 150-step drive down an aisle with markers (warehouse
+seed 3, ``tests/unit/test_lidar_markers.py``'s drive), where the aisle's walls say nothing along it.
 """
 
 from __future__ import annotations
@@ -105,18 +107,40 @@ def short_relation_error(log: Any, trajectory: np.ndarray, span_s: float = 1.0) 
 SIM_STEPS = {"room": 450, "warehouse": 1200}
 
 
-def sim(scenario: str, seed: int) -> dict[str, Any]:
+def sim(scenario: str, seed: int, overrides: dict[str, str]) -> dict[str, Any]:
+    """Dead reckoning and the lidar estimator (with ``overrides``) on one simulated drive."""
     from slam2d.lab.runner import run_named
 
     out: dict[str, Any] = {"scenario": scenario, "seed": seed, "steps": SIM_STEPS[scenario]}
     for est in ("dead-reckoning", "lidar"):
-        _, rec = run_named(est, scenario, seed=seed, overrides={"steps": SIM_STEPS[scenario]}, progress=False)
+        extra = overrides if est == "lidar" else {}
+        _, rec = run_named(est, scenario, seed=seed, overrides={**extra, "steps": SIM_STEPS[scenario]},
+                           progress=False)
         out[f"{est}_ate_m"] = rec["ate_rmse_m"]
         if est == "lidar":
             d = rec["estimator_config"]
             out.update(loops_accepted=rec.get("loops_accepted"), loops_false=rec.get("loops_false"),
                        step_ms_p99=rec["step_ms_p99"], loop_closure=d["loop_closure"])
     return out
+
+
+def aisle_drift(overrides: dict[str, str]) -> float:
+    """The largest error (m) of the floor markers' estimated positions after the 150-step aisle drive."""
+    from slam2d.config import with_overrides
+    from slam2d.graph.lidar import LidarSLAM, LidarSLAMConfig
+    from slam2d.sim.scenarios import ScenarioConfig
+    from slam2d.sim.simulator import simulate
+    from slam2d.sim.warehouse import WarehouseConfig
+
+    log = simulate(ScenarioConfig(name="warehouse", steps=150, warehouse=WarehouseConfig(floor_markers=True)), seed=3)
+    est = LidarSLAM(with_overrides(LidarSLAMConfig(), overrides))
+    est.reset(log.initial_pose, rng=np.random.default_rng(0))
+    for step in log:
+        est.step(step)
+    est.finalize()
+    assert est.graph is not None and log.true_markers is not None
+    truth = log.true_markers[np.asarray(est.graph.marker_ids)]
+    return float(np.abs(est.graph.markers - truth).max())
 
 
 #: the columns that measure the machine, not the estimator
@@ -152,7 +176,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=1, help="runs of each log, taking turns; timing = medians")
     ap.add_argument("--json", default=None, help="write all records as JSON")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                    help="override a LidarSLAMConfig field on the logs (repeatable), e.g. loop_queue=12")
+                    help="override a LidarSLAMConfig field on the logs and the simulated drives (repeatable), "
+                         "e.g. loop_queue=12")
     args = ap.parse_args()
     from slam2d.config import parse_set_args
 
@@ -178,14 +203,17 @@ def main() -> None:
               + _spread(r), flush=True)
     runs = [("room", 0)] + [("warehouse", s) for s in range(args.sim_seeds)]
     for scen, seed in runs:
-        r = sim(scen, seed)
+        r = sim(scen, seed, overrides)
         records["sim"].append(r)
         print(f"{scen:10s} seed {seed}: ATE lidar {r['lidar_ate_m']:.3f} m vs dead reckoning "
               f"{r['dead-reckoning_ate_m']:.3f} m, loops {r['loops_accepted']} (false {r['loops_false']})", flush=True)
     wh = [r for r in records["sim"] if r["scenario"] == "warehouse"]
     if wh:
         print(f"warehouse: {sum(r['loops_false'] or 0 for r in wh)} false loops in "
-              f"{sum(r['loops_accepted'] or 0 for r in wh)} accepted over {len(wh)} seeds")
+              f"{sum(r['loops_accepted'] or 0 for r in wh)} accepted over {len(wh)} seeds, mean ATE "
+              f"{np.mean([r['lidar_ate_m'] for r in wh]):.3f} m")
+    records["aisle_drift_m"] = aisle_drift(overrides)
+    print(f"aisle with floor markers (seed 3, 150 steps): largest marker error {records['aisle_drift_m']:.3f} m")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(records, f, indent=2, default=float)
