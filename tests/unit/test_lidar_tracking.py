@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from slam2d.frontend.icp import ICPTarget, prepare_target
+from slam2d.frontend.icp import ICPConfig, ICPTarget, prepare_target
 from slam2d.geometry import se2
 from slam2d.graph.lidar_config import LidarSLAMConfig
 from slam2d.graph.lidar_tracking import good_fit, track_scan
@@ -108,3 +109,13 @@ def test_a_fit_that_slid_a_quarter_turn_is_not_trusted_and_the_steady_guess_find
         on = track_scan(*args, steady)
         e = se2.local(truth, on.match.transform)
         assert on.replaced and np.hypot(e[0], e[1]) < 0.02 and abs(e[2]) < 0.005
+
+
+def test_the_odometry_prior_is_off_by_default_and_its_settings_are_checked() -> None:
+    cfg = LidarSLAMConfig()
+    assert cfg.track_prior_xy == 0.0 and cfg.track_prior_theta == 0.0
+    with pytest.raises(ValueError, match="track_prior_xy"):
+        LidarSLAMConfig(track_prior_xy=-1.0)
+    with pytest.raises(ValueError, match="point-to-line"):
+        LidarSLAMConfig(track_prior_theta=1.0, icp=ICPConfig(method="point-to-point"))
+

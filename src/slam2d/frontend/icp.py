@@ -164,14 +164,23 @@ def prepare_target(target: ArrayLike, config: ICPConfig | None = None) -> ICPTar
 
 
 def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | None = None,
-        config: ICPConfig | None = None) -> ICPResult:
+        config: ICPConfig | None = None, *, prior: tuple[ArrayLike, ArrayLike] | None = None) -> ICPResult:
     """Align ``source`` points to ``target`` points; returns ``T_target_source`` (see the module docstring).
 
     Shapes: source (N,2), target (M,2), initial (3,) or None (identity).
     Non-finite points are dropped. Too few points or matches gives ``converged=False`` with the initial guess and
     an infinite covariance, never an exception, so a SLAM loop can fall back to odometry.
+
+    ``prior`` (point-to-line only): ``(mean (3,), weights (3,))`` adds the rows ``weights * (T - mean)`` (angle
+    wrapped) to every Gauss-Newton step, beside the matches' residuals (each weighs 1 per metre): a direction the
+    scan leaves loose (a corridor's axis) then follows ``mean`` instead of the iterate. The covariance stays the
+    matches' alone.
     """
     cfg = config or ICPConfig()
+    if prior is not None and cfg.method != "point-to-line":
+        raise ValueError("icp: a prior needs the point-to-line method")
+    pm, pw = (None, None) if prior is None else (np.asarray(prior[0], dtype=np.float64),
+                                                 np.asarray(prior[1], dtype=np.float64))
     src = np.asarray(source, dtype=np.float64).reshape(-1, 2)
     prep = target if isinstance(target, ICPTarget) else prepare_target(target, cfg)
     src = src[np.all(np.isfinite(src), axis=1)]
@@ -225,6 +234,10 @@ def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | N
             jac[:, 2] = n0 * dx + n1 * dy
             m, q = moved[ok], tgt[j]
             r = n0 * (m[:, 0] - q[:, 0]) + n1 * (m[:, 1] - q[:, 1])
+            if pm is not None and pw is not None:
+                e = t - pm
+                e[2] = wrap_angle_scalar(float(e[2]))
+                jac, r = np.vstack([jac, np.diag(pw)]), np.concatenate([r, pw * e])
             # minimum-norm step: a degenerate direction (corridor axis) is left where the initial guess put it
             delta = -np.linalg.lstsq(jac, r, rcond=1e-8)[0]
             t = t + delta  # se2.retract

@@ -164,8 +164,10 @@ class LidarSLAM(EstimatorLifecycle):
             self._pose = guess
             self._add_keyframe(step.index, guess, pts, step.scan, None, np.zeros((3, 3)))
             return
+        prior = None if cfg.track_prior_xy == cfg.track_prior_theta == 0.0 else \
+            np.array([cfg.track_prior_xy, cfg.track_prior_xy, cfg.track_prior_theta])
         tr = track_scan(pts, self._local_target(), guess, cfg.icp, cfg.min_fitness, cfg.track_rematch_rmse_m,
-                        cfg.track_correlative, cfg.track_rematch_points, se2.compose(self._pose, self._motion))
+                        cfg.track_correlative, cfg.track_rematch_points, se2.compose(self._pose, self._motion), prior)
         self.rematches += tr.replaced
         res = tr.match
         if good_fit(res, cfg.min_fitness, np.inf):

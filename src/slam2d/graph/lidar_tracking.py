@@ -70,13 +70,16 @@ def _slid(res: ICPResult, start: Array, correlative: CorrelativeConfig) -> bool:
 
 def track_scan(pts: Array, target: ICPTarget, guess: Array, icp_config: ICPConfig, min_fitness: float,
                rematch_rmse_m: float, correlative: CorrelativeConfig, points: int,
-               steady: Array | None = None) -> TrackResult:
+               steady: Array | None = None, prior_weights: Array | None = None) -> TrackResult:
     """Match scan points ``pts`` (N,2) to the local map ``target`` from ``guess`` (3,) (world poses); when the fit
     is poor, re-match from a correlative search over ``correlative``'s window (with at most ``points`` of the scan,
     evenly spread; 0: no re-match). A fit that slid farther from the guess than that window is not trusted: ICP
     starts again from ``steady`` (the last motion repeated), which wins when it fits and stays near its start;
-    else the re-match runs as for a poor fit."""
-    res = icp(pts, target, initial=guess, config=icp_config)
+    else the re-match runs as for a poor fit. ``prior_weights`` (3,): the first ICP also pulls towards the guess
+    with these weights (:func:`~slam2d.frontend.icp.icp`'s ``prior``; None: off); the recovery fits do not, since
+    they run where the guess is in doubt."""
+    prior = None if prior_weights is None else (guess, prior_weights)
+    res = icp(pts, target, initial=guess, config=icp_config, prior=prior)
     slid = _slid(res, guess, correlative)
     if points <= 0 or (good_fit(res, min_fitness, rematch_rmse_m) and not slid):
         return TrackResult(res, False, False)
