@@ -128,16 +128,14 @@ def aisle_drift(overrides: dict[str, str]) -> float:
     """The largest error (m) of the floor markers' estimated positions after the 150-step aisle drive."""
     from slam2d.config import with_overrides
     from slam2d.graph.lidar import LidarSLAM, LidarSLAMConfig
+    from slam2d.lab.runner import run
     from slam2d.sim.scenarios import ScenarioConfig
     from slam2d.sim.simulator import simulate
     from slam2d.sim.warehouse import WarehouseConfig
 
     log = simulate(ScenarioConfig(name="warehouse", steps=150, warehouse=WarehouseConfig(floor_markers=True)), seed=3)
     est = LidarSLAM(with_overrides(LidarSLAMConfig(), overrides))
-    est.reset(log.initial_pose, rng=np.random.default_rng(0))
-    for step in log:
-        est.step(step)
-    est.finalize()
+    run(est, log, rng=np.random.default_rng(0), progress=False)
     assert est.graph is not None and log.true_markers is not None
     truth = log.true_markers[np.asarray(est.graph.marker_ids)]
     return float(np.abs(est.graph.markers - truth).max())

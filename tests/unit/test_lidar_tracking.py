@@ -118,4 +118,3 @@ def test_the_odometry_prior_is_off_by_default_and_its_settings_are_checked() -> 
         LidarSLAMConfig(track_prior_xy=-1.0)
     with pytest.raises(ValueError, match="point-to-line"):
         LidarSLAMConfig(track_prior_theta=1.0, icp=ICPConfig(method="point-to-point"))
-
