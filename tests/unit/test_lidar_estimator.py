@@ -73,27 +73,35 @@ def test_correlative_match_finds_an_offset_exactly_and_flags_a_repeated_pattern(
 
 def test_correlative_scores_equal_a_point_by_point_lookup(rng: np.random.Generator) -> None:
     """The gathered scores (one cell per point and angle, offsets as index shifts, a zero border) against a plain
-    loop over poses and points, with points far outside the grid and offsets that push some of them out."""
+    loop over poses and points, with points far outside the grid, offsets that push some of them out, and two
+    blocks of angles and offsets at once (the fine refinement's batch)."""
     from slam2d.frontend.correlative import _likelihood, _scores
 
     cfg = CorrelativeConfig()
     tgt = rng.uniform(-2, 2, (60, 2))
     lo, shape = np.array([-2.5, -2.4]), (95, 100)
-    off = np.arange(-6, 7, 3)
     grids = _likelihood(tgt, lo, shape, cfg, pad=2 * 6 + 1)
     src = np.vstack([rng.uniform(-3, 3, (40, 2)), [[50.0, 0.0], [0.0, -40.0]]])
-    th, origin, res = np.array([-0.1, 0.0, 0.27]), np.array([0.013, -0.031]), cfg.resolution_m
+    th = np.array([[-0.1, 0.0, 0.27], [0.3, -0.2, 0.05]])
+    off_x = np.array([np.arange(-6, 7, 3), np.arange(0, 5)])
+    off_y = np.array([np.arange(6, -7, -3), np.arange(-2, 3)])
+    origin, res = np.array([0.013, -0.031]), cfg.resolution_m
     fine = grids.fine.reshape(shape[0] + 26, shape[1] + 26)[13:-13, 13:-13]
-    got = _scores(grids.fine, grids, src, th, origin, off, off[::-1], res)
-    for a, t in enumerate(th):
-        for iy, oy in enumerate(off[::-1]):
-            for ix, ox in enumerate(off):
-                p = se2.transform_points(np.array([*origin, t]), src) - lo
-                i = np.floor(p[:, 1] / res).astype(int) + oy
-                j = np.floor(p[:, 0] / res).astype(int) + ox
-                ok = (i >= 0) & (i < shape[0]) & (j >= 0) & (j < shape[1])
-                want = fine[i[ok], j[ok]].sum() / len(src)
-                assert got[a, iy, ix] == pytest.approx(want, abs=1e-6)
+    got = _scores(grids.fine, grids, src, th, origin, off_x, off_y, res)
+    assert got.shape == (2, 3, 5, 5)
+    for b in range(2):
+        for a, t in enumerate(th[b]):
+            for iy, oy in enumerate(off_y[b]):
+                for ix, ox in enumerate(off_x[b]):
+                    p = se2.transform_points(np.array([*origin, t]), src) - lo
+                    i = np.floor(p[:, 1] / res).astype(int) + oy
+                    j = np.floor(p[:, 0] / res).astype(int) + ox
+                    ok = (i >= 0) & (i < shape[0]) & (j >= 0) & (j < shape[1])
+                    want = fine[i[ok], j[ok]].sum() / len(src)
+                    assert got[b, a, iy, ix] == pytest.approx(want, abs=1e-6)
+    # a block scored alone gives the same numbers as in the batch
+    alone = _scores(grids.fine, grids, src, th[1:], origin, off_x[1:], off_y[1:], res)
+    assert np.array_equal(alone[0], got[1])
 
 
 @pytest.mark.slow

@@ -140,29 +140,33 @@ def _likelihood_table(res: float, sigma: float) -> NDArray[np.float32]:
 
 def _scores(grid: NDArray[np.float32], g: _Grids, pts: Array, thetas: Array, origin: Array, off_x: NDArray[np.int64],
             off_y: NDArray[np.int64], res: float) -> Array:
-    """Mean grid value of ``pts`` rotated by each theta and moved by ``origin`` (m) plus each (off_y, off_x) cells.
+    """Mean grid value of ``pts`` rotated by each theta and moved by ``origin`` (m) plus each (off_y, off_x) cells,
+    for B blocks of angles and offsets at once.
 
-    Shapes: pts (N,2), thetas (A,), origin (2,), offsets (X,), (Y,) -> (A, Y, X). Offsets are whole cells, so a
-    point's cell is found once per angle and every offset is an index shift (one gather of A*N*Y*X values).
+    Shapes: pts (N,2), thetas (B,A), origin (2,), offsets (B,X), (B,Y) -> (B, A, Y, X). Offsets are whole cells, so
+    a point's cell is found once per angle and every offset is an index shift (one gather of B*A*N*Y*X values).
     """
     ny, nx = g.shape
     p = g.pad
     width = nx + 2 * p
-    c, s = np.cos(thetas)[:, None], np.sin(thetas)[:, None]
-    x = c * pts[None, :, 0] - s * pts[None, :, 1] + (origin[0] - g.lo[0])  # (A,N)
+    nb, na = thetas.shape
+    th = thetas.ravel()
+    c, s = np.cos(th)[:, None], np.sin(th)[:, None]
+    x = c * pts[None, :, 0] - s * pts[None, :, 1] + (origin[0] - g.lo[0])  # (B*A,N)
     y = s * pts[None, :, 0] + c * pts[None, :, 1] + (origin[1] - g.lo[1])
     bx = np.floor(x / res).astype(np.int64) - g.first[0]
     by = np.floor(y / res).astype(np.int64) - g.first[1]
     reach = max(int(np.abs(off_x).max()), int(np.abs(off_y).max()))
-    # a point whose every offset lands outside the grid reads the zero corner of the border
+    # a point whose every offset lands outside the grid reads the zero corner of the border (one that some offset
+    # brings back reads the zero border itself: the same 0)
     far = (bx < -reach) | (bx >= nx + reach) | (by < -reach) | (by >= ny + reach)
     bx[far] = reach - p
     by[far] = reach - p
-    base = ((by + p) * width + (bx + p)).astype(np.int32)  # (A,N)
-    off = (off_y[:, None] * width + off_x[None, :]).astype(np.int32).ravel()  # (Y*X,)
-    vals = np.take(grid, base[:, None, :] + off[None, :, None])  # (A, Y*X, N)
+    base = ((by + p) * width + (bx + p)).astype(np.int32).reshape(nb, na, 1, -1)  # (B,A,1,N)
+    off = (off_y[:, :, None] * width + off_x[:, None, :]).astype(np.int32).reshape(nb, 1, -1, 1)  # (B,1,Y*X,1)
+    vals = np.take(grid, base + off)  # (B, A, Y*X, N)
     out = vals.sum(axis=-1, dtype=np.float64) / len(pts)
-    return np.asarray(out.reshape(len(thetas), len(off_y), len(off_x)), dtype=np.float64)
+    return np.asarray(out.reshape(nb, na, off_y.shape[1], off_x.shape[1]), dtype=np.float64)
 
 
 #: beyond this many sigma from every target point the likelihood is exactly 0 in float32 (exp(-112) < 1e-45)
@@ -244,7 +248,7 @@ def correlative_stages(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
     parts = []
     for a in np.array_split(np.arange(len(th)), max(min(stages, len(th)), 1)):
         yield "scores"
-        parts.append(_scores(grids.coarse, grids, src, th[a], g[:2], koff, koff, res))
+        parts.append(_scores(grids.coarse, grids, src, th[a][None], g[:2], koff[None], koff[None], res)[0])
     sc = np.concatenate(parts, axis=0)  # (A,Y,X)
     order = np.argsort(sc, axis=None, kind="stable")[::-1]
     best_t, best_s = g.copy(), -1.0
@@ -253,11 +257,14 @@ def correlative_stages(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
     fine_cells = np.arange(c)
     fine_off = fine_cells * res
     evaluated = sc.size
-    for flat in order[: cfg.max_refined].tolist():
-        a, iy, ix = np.unravel_index(flat, sc.shape)
+    # the best max_refined coarse blocks' fine scores in one gather (a call per block costs more than the few
+    # blocks the bound below skips)
+    top_a, top_y, top_x = np.unravel_index(order[: cfg.max_refined], sc.shape)
+    fine = _scores(grids.fine, grids, src, th[top_a][:, None] + dth, g[:2], koff[top_x][:, None] + fine_cells,
+                   koff[top_y][:, None] + fine_cells, res)  # (B, fine angles, c, c)
+    for f, a, iy, ix in zip(fine, top_a.tolist(), top_y.tolist(), top_x.tolist()):
         if sc[a, iy, ix] <= best_s:  # the bound: nothing in this block can beat the best fine score
             break
-        f = _scores(grids.fine, grids, src, th[a] + dth, g[:2], koff[ix] + fine_cells, koff[iy] + fine_cells, res)
         evaluated += f.size
         b = np.unravel_index(int(np.argmax(f)), f.shape)
         if f[b] > best_s:
