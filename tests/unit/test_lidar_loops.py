@@ -100,6 +100,49 @@ def test_confirmed_mask_keeps_what_two_clouds_saw_on_one_surface() -> None:
     assert confirmed_mask([np.vstack([wall, far]), wall], 0.1, 1.0, 0.6)[21:26].all()
 
 
+def test_confirmed_mask_of_three_clouds_is_each_point_against_each_other_cloud(rng: np.random.Generator) -> None:
+    """The mask of three clouds equals, point by point, the rule applied to each other cloud on its own (an empty
+    cloud looks nowhere)."""
+    wall = np.stack([np.linspace(0, 3, 31), np.zeros(31)], -1)
+    clouds = [wall + rng.normal(0, 0.01, wall.shape), np.vstack([wall[::2], [[1.5, 0.5], [1.6, 0.5]]]),
+              np.zeros((0, 2)), wall[10:] + [0.0, 0.3]]
+    got = confirmed_mask(clouds, 0.1, 0.5, 0.6)
+    want = []
+    for i, c in enumerate(clouds):
+        n_i = icp_module.estimate_normals(c) if len(c) >= 2 else np.zeros((len(c), 2))
+        seen, confirmed = np.zeros(len(c), bool), np.zeros(len(c), bool)
+        for j, o in enumerate(clouds):
+            if j == i or not len(o):
+                continue
+            n_j = icp_module.estimate_normals(o)
+            for p in range(len(c)):
+                d = np.hypot(*(o - c[p]).T)
+                seen[p] |= bool(d.min() <= 0.6)
+                close = np.argsort(d)[:4]
+                confirmed[p] |= bool(np.any((d[close] < 0.1) & (np.abs(n_j[close] @ n_i[p]) >= np.cos(0.5))))
+        want.append(confirmed | ~seen)
+    assert np.array_equal(got, np.concatenate(want))
+    assert got.any() and not got.all()
+
+
+def test_agreeing_equals_loops_agree_pair_by_pair(rng: np.random.Generator) -> None:
+    """The pool's agreement with a new loop, all at once, is loops_agree of each pair on the later loop's poses."""
+    cfg = LidarSLAMConfig()
+    poses = np.cumsum(rng.normal(0, [0.5, 0.5, 0.1], (40, 3)), axis=0)
+    snap = poses + rng.normal(0, 0.01, poses.shape)  # the new loop's poses
+    c, k = 5, 30
+    t_ck = se2.between(snap[c], snap[k])
+    pool = []
+    for c1, k1 in ((4, 28), (6, 30), (5, 30), (3, 33), (7, 25), (2, 31)):  # (5, 30) is the new loop itself
+        t = se2.between(snap[c1], snap[k1]) + rng.normal(0, [0.02, 0.02, 0.01]) * rng.integers(0, 2)
+        pool.append((c1, k1, t, np.eye(3), False, snap if k1 <= k else snap + rng.normal(0, 0.01, snap.shape)))
+    got = lidar_loops.agreeing(pool, (c, k, t_ck), snap, cfg)
+    want = [lidar_loops.loops_agree(q[:3], (c, k, t_ck), snap, cfg) if q[1] <= k else
+            lidar_loops.loops_agree((c, k, t_ck), q[:3], q[5], cfg) for q in pool]
+    assert got == want
+    assert any(got) and not all(got) and not got[2]  # both outcomes occur; a loop never agrees with itself
+
+
 def _segments(posts: bool) -> Array:
     """Walls (S,4) [x0, y0, x1, y1] of a corridor 2.4 m wide along x. ``posts=False``: closed by an end wall at
     x = -3, with door recesses here and there (what pins where along the corridor one is); ``posts=True``:

@@ -262,7 +262,7 @@ def correlative_stages(source: ArrayLike, target: ArrayLike, initial: ArrayLike,
     top_a, top_y, top_x = np.unravel_index(order[: cfg.max_refined], sc.shape)
     fine = _scores(grids.fine, grids, src, th[top_a][:, None] + dth, g[:2], koff[top_x][:, None] + fine_cells,
                    koff[top_y][:, None] + fine_cells, res)  # (B, fine angles, c, c)
-    for f, a, iy, ix in zip(fine, top_a.tolist(), top_y.tolist(), top_x.tolist()):
+    for f, a, iy, ix in zip(fine, top_a.tolist(), top_y.tolist(), top_x.tolist(), strict=True):
         if sc[a, iy, ix] <= best_s:  # the bound: nothing in this block can beat the best fine score
             break
         evaluated += f.size

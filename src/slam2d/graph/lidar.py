@@ -52,7 +52,7 @@ from slam2d.graph import lidar_loops
 from slam2d.graph.incremental import IncrementalPoseGraph
 from slam2d.graph.lidar_config import LidarSLAMConfig, LifelongLidarConfig
 from slam2d.graph.lidar_lifelong import LifelongMarkers, MarkerSurvey
-from slam2d.graph.lidar_loops import LoopCheck, enqueue, loops_agree, static_stages, verify_loop_stages, wants_retry
+from slam2d.graph.lidar_loops import LoopCheck, enqueue, static_stages, verify_loop_stages, wants_retry
 from slam2d.graph.lidar_markers import KeyframeMarkers, MarkerPoseGraph
 from slam2d.graph.lidar_tracking import good_fit, track_scan
 from slam2d.log import Scan, Step
@@ -377,9 +377,8 @@ class LidarSLAM(EstimatorLifecycle):
         Returns the decisions and the loops (old kf, new kf, T, information) to enter the graph."""
         cfg = self.config
         self._pool = [q for q in self._pool if k - q[1] <= cfg.loop_pair_keyframes]
-        # a retry is decided after loops of later keyframes: each pair is judged on the later one's poses
-        partners = [q for q in self._pool if (loops_agree(q[:3], (c, k, t_ck), snap, cfg) if q[1] <= k else
-                                              loops_agree((c, k, t_ck), q[:3], q[5], cfg))] if ok else []
+        partners = [q for q, agree in zip(self._pool, lidar_loops.agreeing(self._pool, (c, k, t_ck), snap, cfg),
+                                          strict=True) if agree] if ok else []
         accept = ok and (cfg.loop_confirmations == 0 or bool(partners))
         events = [LoopEvent(self._kf_step[c], self._kf_step[k], accept, t_ck)]
         loops = [(c, k, t_ck, info)] if accept else []

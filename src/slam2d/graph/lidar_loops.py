@@ -33,12 +33,14 @@ from slam2d.graph.lidar_config import LidarSLAMConfig
 __all__ = [
     "LoopCheck",
     "StageCosts",
+    "agreeing",
     "at_window_edge",
     "confirmed_mask",
     "enqueue",
     "keyframe_points",
     "loop_candidates",
     "loops_agree",
+    "loops_agree_many",
     "static_stages",
     "verify_loop",
     "verify_loop_stages",
@@ -228,25 +230,28 @@ def confirmed_mask(clouds: list[Array], radius_m: float, max_normal_angle_rad: f
     such surface there). A moving object is seen at a different place by each keyframe and drops out (a parked one
     stays); a surface seen by one keyframe only stays; the normal test keeps the end face of an object that slid
     along its own side from being confirmed by that side."""
-    normals = [estimate_normals(c) if len(c) >= 2 else np.zeros((len(c), 2)) for c in clouds]
-    trees = [cKDTree(c) for c in clouds]
+    if not clouds:
+        return np.zeros(0, dtype=bool)
+    normals = np.concatenate([estimate_normals(c) if len(c) >= 2 else np.zeros((len(c), 2)) for c in clouds])
+    points = np.concatenate(clouds)
+    owner = np.repeat(np.arange(len(clouds)), [len(c) for c in clouds])
     cos_max = np.cos(max_normal_angle_rad)
-    keep = []
-    for i, c in enumerate(clouds):
-        seen = np.zeros(len(c), dtype=bool)
-        confirmed = np.zeros(len(c), dtype=bool)
-        for j, tree in enumerate(trees):
-            if j == i or not len(clouds[j]):
-                continue
-            kk = min(4, len(clouds[j]))
-            d, idx = tree.query(c, k=kk, distance_upper_bound=seen_m)
-            d, idx = d.reshape(len(c), kk), idx.reshape(len(c), kk)
-            seen |= np.isfinite(d[:, 0])
-            near = d < radius_m
-            nj = normals[j][np.minimum(idx, len(clouds[j]) - 1)]  # (N,k,2); missing neighbours are masked by near
-            confirmed |= np.any(near & (np.abs(np.einsum("nkd,nd->nk", nj, normals[i])) >= cos_max), axis=1)
-        keep.append(confirmed | ~seen)
-    return np.concatenate(keep) if keep else np.zeros(0, dtype=bool)
+    seen = np.zeros(len(points), dtype=bool)
+    confirmed = np.zeros(len(points), dtype=bool)
+    start = 0
+    for j, cj in enumerate(clouds):  # every other cloud's points against cloud j, in one query
+        nj, start = normals[start:start + len(cj)], start + len(cj)
+        if not len(cj):
+            continue
+        others = np.flatnonzero(owner != j)
+        kk = min(4, len(cj))
+        d, idx = cKDTree(cj).query(points[others], k=kk, distance_upper_bound=seen_m)
+        d, idx = d.reshape(len(others), kk), idx.reshape(len(others), kk)
+        seen[others] |= np.isfinite(d[:, 0])
+        near = d < radius_m
+        nb = nj[np.minimum(idx, len(cj) - 1)]  # (N,k,2); missing neighbours are masked by near
+        confirmed[others] |= np.any(near & (np.abs(np.einsum("nkd,nd->nk", nb, normals[others])) >= cos_max), axis=1)
+    return confirmed | ~seen
 
 
 def weakest_support(pts: Array, target: ICPTarget, t: Array, cfg: LidarSLAMConfig) -> float:
@@ -281,9 +286,34 @@ def loops_agree(old: tuple[int, int, Array], new: tuple[int, int, Array], p: Arr
     put it (a wrong loop among identical places agrees with a right one only by accident). ``p``: the keyframe
     poses when the second loop was queued (k1 <= k2, so they hold every keyframe involved)."""
     (c1, k1, t1), (c2, k2, t2) = old, new
-    if c1 == c2 and k1 == k2:
-        return False
-    lhs = t1 if k1 == k2 else se2.compose(t1, se2.between(p[k1], p[k2]))
+    return bool(loops_agree_many(np.array([c1]), np.array([k1]), np.asarray(t1)[None], (c2, k2, t2), p, cfg)[0])
+
+
+def loops_agree_many(c1: NDArray[np.int64], k1: NDArray[np.int64], t1: Array, new: tuple[int, int, Array], p: Array,
+                     cfg: LidarSLAMConfig) -> NDArray[np.bool_]:
+    """:func:`loops_agree` of M first loops (c1 (M,), k1 (M,), T_c1_k1 (M,3)) with one second loop at once."""
+    c2, k2, t2 = new
+    lhs = np.where((k1 == k2)[:, None], t1, se2.compose(t1, se2.between(p[k1], p[k2])))
     rhs = se2.compose(se2.between(p[c1], p[c2]), t2)
     e = se2.local(lhs, rhs)
-    return bool(np.hypot(e[0], e[1]) <= cfg.loop_pair_xy_m and abs(e[2]) <= cfg.loop_pair_theta_rad)
+    return ~((c1 == c2) & (k1 == k2)) & (np.hypot(e[:, 0], e[:, 1]) <= cfg.loop_pair_xy_m) \
+        & (np.abs(e[:, 2]) <= cfg.loop_pair_theta_rad)
+
+
+def agreeing(pool: list[tuple[int, int, Array, Array, bool, Array]], loop: tuple[int, int, Array], snap: Array,
+             cfg: LidarSLAMConfig) -> list[bool]:
+    """Which loops of ``pool`` (entries (c, k, T, information, accepted, keyframe poses when queued)) agree with
+    the verified ``loop`` (c, k, T) queued at keyframe poses ``snap`` (:func:`loops_agree`). A retry is decided
+    after loops of later keyframes: each pair is judged on the later one's poses."""
+    c, k, _ = loop
+    out = [False] * len(pool)
+    earlier = [i for i, q in enumerate(pool) if q[1] <= k]
+    if earlier:  # judged on this loop's poses: all at once
+        many = loops_agree_many(np.array([pool[i][0] for i in earlier]), np.array([pool[i][1] for i in earlier]),
+                                np.array([pool[i][2] for i in earlier]), loop, snap, cfg)
+        for i, a in zip(earlier, many.tolist(), strict=True):
+            out[i] = a
+    for i, q in enumerate(pool):
+        if q[1] > k:
+            out[i] = loops_agree(loop, q[:3], q[5], cfg)
+    return out
