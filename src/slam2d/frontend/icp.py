@@ -179,10 +179,10 @@ def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | N
     cfg = config or ICPConfig()
     if prior is not None and cfg.method != "point-to-line":
         raise ValueError("icp: a prior needs the point-to-line method")
-    # the prior's rows: their Jacobian is constant, only the residual moves with the iterate
-    pm, pw = (None, None) if prior is None else (np.asarray(prior[0], dtype=np.float64),
-                                                 np.asarray(prior[1], dtype=np.float64))
-    prior_jac = None if pw is None else np.diag(pw)
+    # the prior's rows (mean, weights, Jacobian): the Jacobian is constant, only the residual moves with the iterate
+    prior_rows = None if prior is None else (np.asarray(prior[0], dtype=np.float64),
+                                             np.asarray(prior[1], dtype=np.float64),
+                                             np.diag(np.asarray(prior[1], dtype=np.float64)))
     src = np.asarray(source, dtype=np.float64).reshape(-1, 2)
     prep = target if isinstance(target, ICPTarget) else prepare_target(target, cfg)
     src = src[np.all(np.isfinite(src), axis=1)]
@@ -236,10 +236,11 @@ def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | N
             jac[:, 2] = n0 * dx + n1 * dy
             m, q = moved[ok], tgt[j]
             r = n0 * (m[:, 0] - q[:, 0]) + n1 * (m[:, 1] - q[:, 1])
-            if pm is not None and pw is not None and prior_jac is not None:
+            if prior_rows is not None:
+                pm, pw, pj = prior_rows
                 e = t - pm
                 e[2] = wrap_angle_scalar(float(e[2]))
-                jac, r = np.vstack([jac, prior_jac]), np.concatenate([r, pw * e])
+                jac, r = np.vstack([jac, pj]), np.concatenate([r, pw * e])
             # minimum-norm step: a degenerate direction (corridor axis) is left where the initial guess put it
             delta = -np.linalg.lstsq(jac, r, rcond=1e-8)[0]
             t = t + delta  # se2.retract
