@@ -149,15 +149,19 @@ def ekf_predict(mu: Array, P: Array, u: Array, noise: MotionNoise, *, inplace: b
 
 # ---------------------------------------------------------------------------------------------------- update
 def _low_rank_downdate(P: Array, At: Array) -> None:
-    """``P -= At^T At`` in place (At is (m, n)): one dgemm pass over P, exactly symmetric for symmetric P."""
-    if P.flags.c_contiguous:
-        # P.T is a Fortran-ordered view of the same memory: BLAS overwrites it without a copy
-        out = blas.dgemm(-1.0, At, At, 1.0, P.T, trans_a=1, overwrite_c=1)
-        if np.shares_memory(out, P):
-            return
-        P[...] = out.T  # pragma: no cover - BLAS wrapper declined to work in place
-    else:
-        P -= At.T @ At
+    """``P -= At^T At`` in place (At is (m, n)) for a symmetric P: one ``dsyrk`` on the upper triangle (half the
+    flops of a ``dgemm``), then the upper triangle copied onto the lower one. Exactly symmetric on every CPU: a
+    ``dgemm`` product ``At^T At`` is not (OpenBLAS's AMD Zen kernels round entry (i, j) and (j, i) differently)."""
+    if not P.flags.c_contiguous:
+        tmp = np.ascontiguousarray(P)
+        _low_rank_downdate(tmp, At)
+        P[...] = tmp
+        return
+    # P.T is P's memory in Fortran order (no copy); its lower triangle is P's upper one
+    out = blas.dsyrk(-1.0, At, 1.0, P.T, trans=1, lower=1, overwrite_c=1)
+    if not np.shares_memory(out, P):  # pragma: no cover - BLAS wrapper declined to work in place
+        P[...] = out.T
+    _mirror_upper(P)
 
 
 def _inverse_cholesky(S: Array) -> Array:
