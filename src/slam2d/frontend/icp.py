@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
-from slam2d.config import check_positive, check_probability
+from slam2d.config import check_nonnegative, check_positive, check_probability
 from slam2d.geometry import se2
 from slam2d.geometry.angles import wrap_angle, wrap_angle_scalar
 
@@ -45,6 +45,10 @@ class ICPConfig:
     """matches farther than this are outliers (m)."""
     trim_fraction: float = 0.9
     """after the distance gate keep only this fraction of the closest matches (1.0: no trimming)."""
+    median_gate: float = 0.0
+    """instead of a fixed fraction, keep the matches within this many times the median match distance (after the
+    distance gate, every iteration; 0: ``trim_fraction`` applies). The cut follows the scan: a clean one keeps
+    nearly all its matches, one with moved objects drops their far matches."""
     tolerance: float = 1e-6
     """stop when the update is smaller than this (m and rad)."""
     normal_neighbours: int = 5
@@ -57,6 +61,7 @@ class ICPConfig:
             raise ValueError(f"ICPConfig.method must be 'point-to-point' or 'point-to-line' (got {self.method!r})")
         check_positive(self, "max_correspondence_m", "tolerance")
         check_probability(self, "trim_fraction", open_low=True)
+        check_nonnegative(self, "median_gate")
         if self.max_iterations < 1:
             raise ValueError(f"ICPConfig.max_iterations must be >= 1 (got {self.max_iterations})")
         if self.normal_neighbours < 2:
@@ -197,7 +202,7 @@ def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | N
         normals = estimate_normals(tgt, cfg.normal_neighbours, tree)
 
     sx, sy = src[:, 0].copy(), src[:, 1].copy()  # contiguous columns: every iteration reads them
-    gate, trim, tol = cfg.max_correspondence_m, cfg.trim_fraction, cfg.tolerance
+    gate, trim, median_gate, tol = cfg.max_correspondence_m, cfg.trim_fraction, cfg.median_gate, cfg.tolerance
     moved = np.empty_like(src)
 
     def match(tr: Array) -> tuple[NDArray[np.intp], NDArray[np.intp], float, float]:
@@ -208,8 +213,12 @@ def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | N
         moved[:, 0] = tr[0] + c * sx - s * sy
         moved[:, 1] = tr[1] + s * sx + c * sy
         d, j = tree.query(moved, distance_upper_bound=gate)
-        if trim < 1.0:
+        if median_gate > 0:
             # unmatched points have d = inf and sort last; a stable sort keeps index order among equal distances
+            found = d[d < np.inf]
+            keep = int(np.count_nonzero(found <= median_gate * float(np.median(found)))) if len(found) else 0
+            ok = np.argsort(d, kind="stable")[:keep]
+        elif trim < 1.0:
             found = int(np.count_nonzero(d < np.inf))
             ok = np.argsort(d, kind="stable")[:max(math.ceil(trim * found), 1) if found else 0]
         else:
