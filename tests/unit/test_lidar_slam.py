@@ -83,10 +83,12 @@ def test_lidar_alias_bad_dataset_name_and_bad_override(tmp_path: Path, capsys: p
     assert (tmp_path / "m.png").read_bytes() == before
 
 
-#: ACES, first 3000 scans, default config (measured on this branch; deterministic: the same on every run). The
-#: logged odometry scores 0.0315 m on these 483 (short) relations: ACES odometry is good locally, it fails on loops.
+#: ACES, first 3000 scans, default config (measured at 479a220 on an AMD EPYC VM; deterministic on a machine, while
+#: another CPU's rounding moves it a little: the fixed trim before gave 0.0329 m / 0.339 deg on the earlier VM and
+#: 0.0332 / 0.335 on this one). The logged odometry scores 0.0315 m on these 483 (short) relations: ACES odometry is
+#: good locally, it fails on loops.
 ACES_HEAD = 3000
-PIN = {"relations": 483, "trans_mean_m": 0.0329, "rot_mean_deg": 0.339}
+PIN = {"relations": 483, "trans_mean_m": 0.0318, "rot_mean_deg": 0.360}
 
 
 @pytest.mark.slow
