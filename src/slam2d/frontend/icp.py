@@ -6,9 +6,10 @@ poses ``a`` (target) and ``b`` (source), ``T`` estimates ``between(a, b)`` and `
 
 Each iteration matches the source points, moved by the current estimate, to their nearest target points (one
 ``cKDTree`` query for all points), rejects pairs farther than ``max_correspondence_m`` and then keeps the
-``trim_fraction`` closest (trimmed ICP). Point-to-point solves the increment in closed form (SVD, with the
-det(R) = +1 guard against reflections) and composes it on the LEFT, ``T <- dT (+) T``, because it was estimated
-between points already expressed in the target frame. Point-to-line takes Gauss-Newton steps on
+``trim_fraction`` closest (trimmed ICP), or, with ``median_gate``, those within that many times the median
+distance. Point-to-point solves the increment in closed form (SVD, with the det(R) = +1 guard against
+reflections) and composes it on the LEFT, ``T <- dT (+) T``, because it was estimated between points already
+expressed in the target frame. Point-to-line takes Gauss-Newton steps on
 ``r_i = n_i . (R p_i + t - q_i)`` directly in the pose parameters (additive with wrap, the library's convention).
 
 Covariance: ``sigma^2 (J^T J)^-1`` at the solution, with ``J`` the Jacobian of the final residuals with respect to
