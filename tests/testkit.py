@@ -24,6 +24,17 @@ def dataset_path(*parts: str) -> Path:
     return p
 
 
+def chain(u: np.ndarray, start: np.ndarray) -> np.ndarray:
+    """Compose odometry increments ``u`` (T,3) one by one from ``start`` (3,): the reference the estimators use.
+    Shapes -> (T+1,3)."""
+    from slam2d.geometry import se2
+
+    p = [np.asarray(start, dtype=float)]
+    for ui in u:
+        p.append(se2.compose(p[-1], ui))
+    return np.array(p)
+
+
 def dense_joseph(mu, P, js, z, R):  # type: ignore[no-untyped-def]
     """The plain textbook EKF update of range-bearing observations ``z`` (K,2) of landmarks ``js``, a reference for
     the fast kernels: stacked dense H (2K x n), K = P H^T S^-1, mean mu + K nu, Joseph-form covariance

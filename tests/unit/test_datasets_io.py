@@ -27,16 +27,9 @@ from slam2d.io.datasets.victoria import CAR_A_M, CAR_B_M, CAR_H_M, CAR_L_M, STEE
 from slam2d.lab.registry import make_config
 from slam2d.models.motion import MotionNoise, sample_odometry
 from slam2d.models.sensors import range_bearing
+from testkit import chain
 
 HEADER = "# synthetic\n# file\n# for\n# tests\n"
-
-
-def chain(u: np.ndarray, start: np.ndarray) -> np.ndarray:
-    """Compose increments one by one (the reference the estimators use)."""
-    p = [np.asarray(start, dtype=float)]
-    for ui in u:
-        p.append(se2.compose(p[-1], ui))
-    return np.array(p)
 
 
 def euler(t_cmd, v, w, t_end, h=1e-4):
