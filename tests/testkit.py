@@ -25,14 +25,11 @@ def dataset_path(*parts: str) -> Path:
 
 
 def chain(u: np.ndarray, start: np.ndarray) -> np.ndarray:
-    """Compose odometry increments ``u`` (T,3) one by one from ``start`` (3,): the reference the estimators use.
-    Shapes -> (T+1,3)."""
+    """Dead reckoning: odometry increments ``u`` (T,3) composed from ``start`` (3,) (:func:`slam2d.geometry.se2.
+    compose_chain`, in the tests' argument order). Shapes -> (T+1,3)."""
     from slam2d.geometry import se2
 
-    p = [np.asarray(start, dtype=float)]
-    for ui in u:
-        p.append(se2.compose(p[-1], ui))
-    return np.array(p)
+    return se2.compose_chain(start, u)
 
 
 def dense_joseph(mu, P, js, z, R):  # type: ignore[no-untyped-def]

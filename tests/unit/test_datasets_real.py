@@ -77,7 +77,7 @@ def test_mrclam7_slam_without_ids_beats_dead_reckoning(robot: int):
     from slam2d.lab.runner import run_named
 
     log = load_mrclam(dataset_path("utias-mrclam-7"), robot)
-    # dead reckoning is the odometry chain: its ATE equals run_named("dead-reckoning", ...)'s bit for bit (checked on
+    # dead reckoning is the odometry chain: its ATE equals run_named("dead-reckoning", ...)'s to rounding (checked on
     # all five robots) without the estimator's per-step covariance propagation (4-5 s a robot)
     dr = ate(chain(log.odometry, log.initial_pose), log.true_poses).rmse_m
     for name, overrides in MRCLAM7_UNKNOWN.items():
