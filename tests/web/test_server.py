@@ -344,7 +344,7 @@ def test_commands_queue_at_most_a_burst_while_the_session_is_behind() -> None:
     ws = Socket(RATE_BURST + 50)
     conn = Connection(ws, None, 30, None)  # type: ignore[arg-type]  # the receiver touches neither
     conn.limiter = RateLimiter(per_s=1e9, burst=10**6)  # only the queue's bound limits
-    asyncio.run(conn.receiver())
+    _run(conn.receiver())
     assert conn.commands.qsize() == RATE_BURST and conn.closed
     assert [m["message"][:40] for m in ws.sent] == ["too many commands: 1 dropped (a page may"]
     assert conn.dropped == 49  # counted for the next message
