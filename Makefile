@@ -49,7 +49,7 @@ typecheck: $(STAMP)
 # takes about half the wall time on the 2-core CI machine; PYTEST_WORKERS=0 runs it in one process
 PYTEST_WORKERS ?= 2
 pytest: $(STAMP) chromium
-	$(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadfile --durations=25
+	OPENBLAS_NUM_THREADS=$${OPENBLAS_NUM_THREADS:-1} $(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadfile --durations=25
 
 test: lint typecheck pytest
 

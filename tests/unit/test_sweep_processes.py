@@ -98,14 +98,16 @@ def test_dask_sweep_survives_a_killed_worker(tmp_path):
             f.close()
 
 
-# runs long enough (~0.4 s each) that the interrupt lands mid-sweep even when this test process is starved of CPU
-# (with 100 steps a loaded machine finished all 40 runs before the test saw the first records)
-SIGINT_SWEEP = """
+# runs long enough (~2 s CPU each on a 2.0 GHz core, ~0.8 s on a 3 GHz one) that the interrupt, sent after 4
+# records, lands mid-sweep even when this test process is starved of CPU (with 100 steps a loaded machine finished
+# all 40 runs before the test saw the first records); 40 runs of 1000 steps took 94 s of a slow CI worker
+SIGINT_RUNS = 20
+SIGINT_SWEEP = f"""
 estimators = ["dead-reckoning"]
 scenarios = ["room"]
-seeds = 40
+seeds = {SIGINT_RUNS}
 [set]
-steps = 1000
+steps = 400
 """
 
 
@@ -134,17 +136,17 @@ def test_sigint_then_rerun_finishes_only_the_missing_runs(tmp_path, capsys, monk
     assert proc.returncode == 130, (stdout, stderr)
     assert "interrupted" in stdout
     first = len(store.read_bytes().splitlines())
-    assert 4 <= first < 40, "the sweep finished before the interrupt: make its runs longer"
+    assert 4 <= first < SIGINT_RUNS, "the sweep finished before the interrupt: make its runs longer"
 
     # the re-run (in this process, to save an interpreter start) does only what is missing
     from slam2d.cli.main import main
 
     assert main(cmd[3:]) == 0
     printed = capsys.readouterr().out
-    assert f"{first} already stored, {40 - first} to run" in printed
-    assert f"ran {40 - first} runs" in printed
+    assert f"{first} already stored, {SIGINT_RUNS - first} to run" in printed
+    assert f"ran {SIGINT_RUNS - first} runs" in printed
     records, problems = ResultStore(out).scan()
-    assert not problems and len(records) == 40
-    assert len(store.read_bytes().splitlines()) == 40  # nothing ran twice
-    assert sorted(seed for _, seed in records) == list(range(40))
+    assert not problems and len(records) == SIGINT_RUNS
+    assert len(store.read_bytes().splitlines()) == SIGINT_RUNS  # nothing ran twice
+    assert sorted(seed for _, seed in records) == list(range(SIGINT_RUNS))
     assert Path(out / "plan.json").exists()

@@ -26,6 +26,7 @@ to a floor; O(n^3)).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -312,8 +313,15 @@ def _mirror_upper(P: Array, block: int = 64) -> None:
     for i in range(0, n, block):
         P[i:i + block, :i] = P[:i, i:i + block].T
         d = P[i:i + block, i:i + block]
-        low = np.tril_indices(d.shape[0], -1)
+        low = _strict_lower(d.shape[0])
         d[low] = d.T[low]
+
+
+@functools.lru_cache(maxsize=8)
+def _strict_lower(m: int) -> tuple[IntArray, IntArray]:
+    """``np.tril_indices(m, -1)``, built once per size: every EKF update mirrors its covariance, and building
+    them took as long as the mirror itself."""
+    return np.tril_indices(m, -1)
 
 
 def _symmetric_rows(P: Array, idx: IntArray, cols: IntArray) -> Array:
