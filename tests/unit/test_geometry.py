@@ -206,3 +206,15 @@ def test_a_start_frame_covariance_turned_into_the_between_frame_weighs_every_dis
         if abs(np.sin(th)) > 0.5:  # unturned, one sigma along the corridor weighs as ten across it, or more
             e = between_error(np.zeros(3), z + [0.04, 0.0, 0.0], z)
             assert e @ np.linalg.inv(cov) @ e > 10.0
+
+
+def test_matrix_from_rows_broadcasts_scalars_and_arrays_like_a_stack():
+    rng = np.random.default_rng(3)
+    c, x = rng.normal(size=(4, 1)), rng.normal(size=5)  # broadcast to (4, 5)
+    m = se2.matrix_from_rows([c, 0.0, x], [1.0, c * x, -c])
+    shape = (4, 5)
+    want = np.stack([np.stack([np.broadcast_to(e, shape) for e in r], axis=-1)
+                     for r in ([c, 0.0, x], [1.0, c * x, -c])], axis=-2)
+    assert m.shape == (4, 5, 2, 3) and m.dtype == np.float64 and np.array_equal(m, want)
+    with pytest.raises(ValueError, match="different lengths"):
+        se2.matrix_from_rows([c, x], [c])

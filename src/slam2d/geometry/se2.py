@@ -28,8 +28,17 @@ def _f(a: ArrayLike) -> Array:
 
 def matrix_from_rows(*rows: list[Array]) -> Array:
     """Stack rows of broadcast scalars into (..., n, m) matrices."""
-    shape = np.broadcast_shapes(*[np.shape(e) for r in rows for e in r])
-    return np.stack([np.stack([np.broadcast_to(e, shape) for e in r], axis=-1) for r in rows], axis=-2)
+    entries = [e for r in rows for e in r]
+    width = len(rows[0])
+    if any(len(r) != width for r in rows):
+        raise ValueError(f"matrix_from_rows: rows of different lengths {[len(r) for r in rows]}")
+    shape = np.broadcast_shapes(*[np.shape(e) for e in entries])
+    # one buffer filled entry by entry (the entries are the matrix's n*m cells, not data): a nested np.stack of
+    # broadcast views cost several times more, and Jacobians are built on every factor evaluation
+    out = np.empty((*shape, len(rows), width), dtype=np.result_type(*entries))
+    for k, e in enumerate(entries):
+        out[..., k // width, k % width] = e
+    return out
 
 
 def compose(a: ArrayLike, b: ArrayLike) -> Array:
