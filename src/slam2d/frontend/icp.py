@@ -215,10 +215,18 @@ def icp(source: ArrayLike, target: ArrayLike | ICPTarget, initial: ArrayLike | N
         moved[:, 1] = tr[1] + s * sx + c * sy
         d, j = tree.query(moved, distance_upper_bound=gate)
         if median_gate > 0:
-            # unmatched points have d = inf and sort last; a stable sort keeps index order among equal distances
-            found = d[d < np.inf]
-            keep = int(np.count_nonzero(found <= median_gate * float(np.median(found)))) if len(found) else 0
-            ok = np.argsort(d, kind="stable")[:keep]
+            # unmatched points have d = inf and sort last; a stable sort keeps index order among equal distances.
+            # The median and the count under the gate are read off the sorted distances (np.median's value: the
+            # middle one, or the mean of the middle two)
+            order = np.argsort(d, kind="stable")
+            nf = int(np.count_nonzero(d < np.inf))
+            keep = 0
+            if nf:
+                ds = d[order[:nf]]
+                h = nf // 2
+                median = float(ds[h]) if nf % 2 else float((ds[h - 1] + ds[h]) / 2.0)
+                keep = int(np.searchsorted(ds, median_gate * median, side="right"))
+            ok = order[:keep]
         elif trim < 1.0:
             found = int(np.count_nonzero(d < np.inf))
             ok = np.argsort(d, kind="stable")[:max(math.ceil(trim * found), 1) if found else 0]
