@@ -320,8 +320,10 @@ def _mirror_upper(P: Array, block: int = 64) -> None:
 @functools.lru_cache(maxsize=8)
 def _strict_lower(m: int) -> tuple[IntArray, IntArray]:
     """``np.tril_indices(m, -1)``, built once per size: every EKF update mirrors its covariance, and building
-    them took as long as the mirror itself."""
-    return np.tril_indices(m, -1)
+    them took as long as the mirror itself. Read-only: every caller shares them."""
+    rows, cols = np.tril_indices(m, -1)
+    rows.flags.writeable = cols.flags.writeable = False
+    return rows, cols
 
 
 def _symmetric_rows(P: Array, idx: IntArray, cols: IntArray) -> Array:
