@@ -203,6 +203,21 @@ def test_optimizer_reuses_analysis_until_structure_changes():
     assert s3.chi2_final == pytest.approx(s4.chi2_final, rel=1e-12)
 
 
+def test_marginals_reuse_the_optimizers_symbolic_factorisation_and_give_the_same_numbers():
+    sg = manhattan_walk(np.random.default_rng(5), num_poses=80)
+    opt = Optimizer(sg.graph)
+    out, _ = opt.optimize(sg.initial)
+    fresh = marginal_covariances(sg.graph, out, [79, 40], analysis=opt.analysis)
+    refactored = []
+    solver = opt.solver
+    assert solver is not None
+    factorize = solver.factorize
+    solver.factorize = lambda upper: (refactored.append(upper.nnz), factorize(upper))[1]  # type: ignore[method-assign]
+    reused = marginal_covariances(sg.graph, out, [79, 40], analysis=opt.analysis, solver=solver)
+    assert len(refactored) == 1  # the optimiser's solver did the work
+    np.testing.assert_array_equal(reused.joint, fresh.joint)  # same ordering: the same numbers, bit for bit
+    assert np.all(np.linalg.eigvalsh(reused.joint) > 0)
+
 def test_disconnected_graph_holds_one_pose_per_component():
     g = FactorGraph()
     g.add_between([0, 10], [1, 11], [[1, 0, 0], [0, 1, 0]], np.eye(3))

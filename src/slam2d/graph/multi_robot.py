@@ -387,7 +387,7 @@ class MultiGraphSLAM(EstimatorLifecycle):
         self._solved = (graph, out, opt.analysis)
         if not marginals:
             return
-        m = marginal_covariances(graph, out, pk[self.last_row], used, analysis=opt.analysis)
+        m = marginal_covariances(graph, out, pk[self.last_row], used, analysis=opt.analysis, solver=opt.solver)
         for r in range(self.n):
             pc = m.block("pose", int(pk[self.last_row[r]]))
             self.node_cov[r] = pc

@@ -230,7 +230,8 @@ class GraphSLAM(EstimatorLifecycle):
         an = self.optimizer.analysis
         if an is None or not an.compatible(self.graph, self.values):
             an = None
-        return marginal_covariances(self.graph, self.values, pose_keys, point_keys, analysis=an).joint
+        return marginal_covariances(self.graph, self.values, pose_keys, point_keys, analysis=an,
+                                    solver=self.optimizer.solver).joint
 
     def _optimize(self, iterations: int, *, all_points: bool = False, local: bool = False) -> None:
         """Optimise the whole graph, or with ``local`` in window mode only the window (bounded work)."""
