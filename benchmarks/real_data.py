@@ -77,8 +77,9 @@ def main() -> int:
     print("| dataset | estimator | ATE (m) | map RMSE (m) | landmarks | CPU (s) |")
     print("|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['dataset']} | {r['estimator']} | {r['ate_m']:.3f} | {r.get('map_rmse_m', float('nan')):.3f} | "
-              f"{r['landmarks']} | {r['cpu_s']:.1f} |")
+        map_rmse = f"{r['map_rmse_m']:.3f}" if "map_rmse_m" in r else "–"  # no surveyed landmarks, or no map
+        print(f"| {r['dataset']} | {r['estimator']} | {r['ate_m']:.3f} | {map_rmse} | {r['landmarks']} | "
+              f"{r['cpu_s']:.1f} |")
     if vp_rows:
         print("\nVictoria Park: the processed graph (victoriaPark.txt) solved from each raw-data estimate (LM; from "
               "its odometry chain LM stops at chi2 503276, dog leg at 250028)\n")
