@@ -293,6 +293,8 @@ class EKFSLAM(EstimatorLifecycle):
         z_all = range_bearing(self._mu[:POSE_DIM], lms).reshape(n_l, 2)
         half_fov = 0.5 * sensor.fov_rad
         view = in_view(z_all, sensor.max_range_m, sensor.fov_rad, self.config.view_margin_m)
+        if not len(obs):  # nothing to associate: the step's misses need only the view, not the predictions
+            return Candidates(self._ids[:0], np.zeros((0, 2)), np.zeros((0, 2, 2))), np.zeros(0, np.int64), view
         if self._assoc.method == "known":
             # known ids must see every landmark in the state, or a drifted one would be duplicated
             js = np.arange(n_l)
