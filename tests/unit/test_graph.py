@@ -218,6 +218,7 @@ def test_marginals_reuse_the_optimizers_symbolic_factorisation_and_give_the_same
     np.testing.assert_array_equal(reused.joint, fresh.joint)  # same ordering: the same numbers, bit for bit
     assert np.all(np.linalg.eigvalsh(reused.joint) > 0)
 
+
 def test_disconnected_graph_holds_one_pose_per_component():
     g = FactorGraph()
     g.add_between([0, 10], [1, 11], [[1, 0, 0], [0, 1, 0]], np.eye(3))
