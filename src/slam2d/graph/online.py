@@ -228,8 +228,7 @@ class GraphSLAM(EstimatorLifecycle):
             return window.marginals(np.asarray(pose_keys, np.int64), np.asarray(point_keys, np.int64),
                                     lambda keys: self._pose_covs[self._pose_rows(keys)])
         an = self.optimizer.analysis
-        if an is None or not an.compatible(self.graph, self.values):
-            an = None
+        an = an if an is not None and an.compatible(self.graph, self.values) else None
         return marginal_covariances(self.graph, self.values, pose_keys, point_keys, analysis=an,
                                     solver=self.optimizer.solver).joint
 
