@@ -2,13 +2,14 @@
 #   make run   - create .venv, install slam2d[web,viz], and start the web lab (prints the URL; Ctrl+C stops it;
 #                PORT=8010 serves on another port)
 #   make demo  - every estimator on the default scenario: a table and out/demo.png
-#   make test  - create .venv, install test dependencies, lint, type-check and run the whole test suite
+#   make test  - create .venv, install test dependencies, lint, type-check and run the test suite
+#   make test-long - the same plus the long tests (whole real logs, 30-run Monte Carlo: SLAM2D_LONG_TESTS=1)
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml | cksum | cut -d' ' -f1)
 
-.PHONY: run demo chromium test lint typecheck pytest bench clean
+.PHONY: run demo chromium test test-long lint typecheck pytest bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -52,6 +53,11 @@ pytest: $(STAMP) chromium
 	OPENBLAS_NUM_THREADS=$${OPENBLAS_NUM_THREADS:-1} $(PY) -m pytest -n $(PYTEST_WORKERS) --dist loadfile --durations=25
 
 test: lint typecheck pytest
+
+# the long tests (tests/testkit.py LONG) beside the rest: an hour or more on the 2-core CI machine (the three
+# MRCLAM multi-robot runs take 15-25 min each)
+test-long:
+	SLAM2D_LONG_TESTS=1 $(MAKE) test
 
 bench: $(STAMP)
 	@for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b || exit 1; done

@@ -1,5 +1,7 @@
 """SLAM on the whole Victoria Park log without ids, GPS used only to score (skipped cleanly when ../shared/datasets
-is absent). Apart from ``test_datasets_real.py`` so that the two long files run on both test workers at once."""
+is absent). Apart from ``test_datasets_real.py`` so that the two long files run on both test workers at once.
+EKF-SLAM runs in every `make test`; FastSLAM 2.0 and online graph SLAM (about 210 s more on the CI machine) run with
+SLAM2D_LONG_TESTS=1."""
 
 from __future__ import annotations
 
@@ -8,13 +10,13 @@ import pytest
 
 from slam2d.eval.gps import gps_ate
 from slam2d.io.datasets.victoria import load_victoria
-from testkit import chain, dataset_path
+from testkit import LONG, chain, dataset_path
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize(("estimator", "gps_bound_m"), [
     ("ekf", 4.5),
-    ("fastslam2", 4.5),
+    pytest.param("fastslam2", 4.5, marks=LONG),
 ])
 def test_victoria_unknown_association_matches_gps_and_the_processed_optimum(estimator: str, gps_bound_m: float):
     """The must-show of the real-data issue: no ids, GPS used only to score. Measured (seed 0): ekf 3.28 m,
@@ -42,6 +44,7 @@ def test_victoria_unknown_association_matches_gps_and_the_processed_optimum(esti
 
 
 @pytest.mark.slow
+@LONG
 def test_victoria_online_graph_with_unknown_association_beats_dead_reckoning():
     """Online graph SLAM, no ids, GPS only to score, on the first 2500 steps (about 25 s CPU on the VM of 2026-12-01,
     76 s on the 2.0 GHz EPYC VM of 2026-12-05; the whole log is in ``benchmarks/real_data.py``). Measured (seed 0):

@@ -17,6 +17,7 @@ from slam2d.graph.lidar_loops import LoopCheck
 from slam2d.lab.registry import make_estimator
 from slam2d.lab.runner import run
 from slam2d.sim import simulate
+from testkit import LONG
 
 
 def test_contract_order_and_registry() -> None:
@@ -216,7 +217,8 @@ def test_a_queued_candidate_is_decided_the_same_whenever_it_is_verified() -> Non
     assert np.array_equal(later.information, first.information) and later.score == first.score
 
 
-@pytest.mark.parametrize(("retry_m", "after_m"), [(0.0, 0.0), (2.5, 0.0), (2.5, 5.0)])
+#: (2.5, 0.0) runs with SLAM2D_LONG_TESTS=1: (2.5, 5.0) takes the same retry path and also reads the retry distance
+@pytest.mark.parametrize(("retry_m", "after_m"), [(0.0, 0.0), pytest.param(2.5, 0.0, marks=LONG), (2.5, 5.0)])
 def test_loops_do_not_depend_on_when_candidates_are_verified(retry_m: float, after_m: float) -> None:
     """All candidates verified in the scan that queued them, one stage per scan, or as many as this machine's CPU
     time allows (``loop_budget_ms``): the same loops, the same measurements, the same trajectory (decisions enter

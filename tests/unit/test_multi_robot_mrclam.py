@@ -5,21 +5,17 @@ Baseline: each robot's single-robot online graph SLAM (``slam2d run --dataset mr
 
 from __future__ import annotations
 
-import os
-
 import pytest
 
 from slam2d.io.datasets import load_dataset
 from slam2d.io.datasets.mrclam import load_mrclam_all
 from slam2d.lab.multi_robot import run_multi
 from slam2d.lab.runner import run_named
-from testkit import dataset_path
+from testkit import LONG, dataset_path
 
 #: each full run takes 15-25 min on the loaded 2-core CI machine, beyond the suite's budget: these run on request
 #: (SLAM2D_LONG_TESTS=1); `python benchmarks/multi_robot.py --mode ...` prints the same numbers
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(not os.environ.get("SLAM2D_LONG_TESTS"),
-                                 reason="full MRCLAM multi-robot runs: set SLAM2D_LONG_TESTS=1")]
+pytestmark = [pytest.mark.slow, LONG]
 
 #: bounds of the claims (measured values in the report; see benchmarks/multi_robot.py)
 MAP_RMSE_KNOWN_M = 0.1
