@@ -5,6 +5,7 @@ import slam2d
 from slam2d.graph.online import GraphSLAM, GraphSLAMConfig
 from slam2d.lab.registry import make_config
 from slam2d.sim.simulator import spawn_streams
+from testkit import LONG
 
 
 def _run(name, seed, **over):
@@ -48,13 +49,12 @@ def test_loop_closure_on_the_loop_scenario():
 
 
 @pytest.mark.slow
-def test_warehouse_aisles_create_no_false_loops():
-    accepted = 0
-    for seed in range(3):
-        _, est, res = _run("warehouse", seed)
-        assert res.metrics["loops_false"] == 0
-        accepted += res.metrics["loops_accepted"]
-        assert sum(not lp.accepted for lp in res.loops) > 50  # look-alike aisles were proposed and rejected
+#: seed 0 in every `make test`, seeds 1 and 2 with SLAM2D_LONG_TESTS=1
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=LONG), pytest.param(2, marks=LONG)])
+def test_warehouse_aisles_create_no_false_loops(seed: int):
+    _, _, res = _run("warehouse", seed)
+    assert res.metrics["loops_false"] == 0
+    assert sum(not lp.accepted for lp in res.loops) > 50  # look-alike aisles were proposed and rejected
 
 
 def test_loop_candidate_against_a_forgotten_keyframe_is_skipped():
