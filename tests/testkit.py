@@ -16,8 +16,9 @@ REPO = Path(__file__).resolve().parents[1]
 DATASETS = Path(os.environ.get("SLAM2D_DATA", REPO.parent / "shared" / "datasets"))
 
 #: a test beyond the suite's budget (15 min on the loaded 2-core CI machine): whole real logs and 30-run Monte Carlo.
-#: It runs with SLAM2D_LONG_TESTS=1 (`make test-long`); `make test` runs a shorter test of the same kind (one robot,
-#: one scenario, one back end on the log), and the benchmarks print the full numbers the README states
+#: It runs with SLAM2D_LONG_TESTS=1 (`make test-long`); `make test` keeps a shorter test of the same kind (one robot,
+#: one scenario, one back end on the log; simulated fleets for the MRCLAM multi-robot runs), and the benchmarks print
+#: the full numbers the README states
 LONG = pytest.mark.skipif(not os.environ.get("SLAM2D_LONG_TESTS"),
                           reason="long test: set SLAM2D_LONG_TESTS=1 (make test-long)")
 
