@@ -381,3 +381,41 @@ def test_simulator_lidar_back_end_draws_its_occupancy_grid(page: Any, lab_server
     assert any("lidar: a scan every" in n for n in page.evaluate("window.slamLab.notices"))
     page.screenshot(path=str(artifacts / "simulator-lidar-grid.png"))
     assert errors == []
+
+
+def test_status_line_says_what_the_page_waits_for_and_when_the_server_is_gone(page: Any, lab_server: str) -> None:
+    """While the server builds the session (held back here: the server's messages wait in the test), the status
+    says so and counts the seconds; once frames flow it gives the rates; after the connection drops it says
+    disconnected and keeps saying it (the once-a-second rates used to overwrite it with "0.0 frames/s")."""
+    held: list[Any] = []
+    route: dict[str, Any] = {}
+
+    def from_server(msg: Any) -> None:
+        if route.get("hold", True):
+            held.append(msg)
+        else:
+            route["page"].send(msg)
+
+    def on_socket(ws: Any) -> None:
+        route["page"] = ws
+        ws.connect_to_server().on_message(from_server)
+
+    page.route_web_socket("**/ws/problem*", on_socket)
+    errors = open_page(page, f"{lab_server}/lab/problem?hz=20")
+    page.wait_for_function("window.slamLab && window.slamLab.connected && window.slamLab.statusTicks >= 2",
+                           timeout=WAIT_MS)
+    assert page.evaluate("window.slamLab.hello") is None
+    assert "building this page's session" in page.inner_text("#status")
+    while held:  # in order: messages that arrive while these are sent join the queue
+        route["page"].send(held.pop(0))
+    route["hold"] = False
+    page.wait_for_function(FRAMES, timeout=WAIT_MS)
+    ticks = page.evaluate("window.slamLab.statusTicks")
+    page.wait_for_function(f"window.slamLab.statusTicks >= {ticks + 1}", timeout=WAIT_MS)
+    assert "frames/s received" in page.inner_text("#status")
+    route["page"].close()
+    page.wait_for_function("!window.slamLab.connected", timeout=WAIT_MS)
+    ticks = page.evaluate("window.slamLab.statusTicks")
+    page.wait_for_function(f"window.slamLab.statusTicks >= {ticks + 2}", timeout=WAIT_MS)
+    assert page.inner_text("#status") == "disconnected from the lab server"
+    assert errors == []

@@ -19,7 +19,7 @@ const lab = {
   page, frames: 0, bytes: 0, drawn: 0, fps: 0, recvFps: 0, seq: -1, decodeMs: 0, drawMs: 0,
   pose: null, estPose: null, counters: {}, values: {}, notices: [], errors: [], hello: null, connected: false, states: 0,
   rows: [], inactive: [], zoom: null, feedback: null,
-  sections: {}, record: 0, recorded: null,
+  sections: {}, record: 0, recorded: null, statusTicks: 0, openedAt: null,
   send: (obj) => send(obj),
   // benchmark hook: draw a recorded frame now (and finish its pixels), without the websocket
   drawBuffer: (buf) => { latest = decodeFrame(buf); draw(); view.ctx.getImageData(0, 0, 1, 1); },
@@ -28,6 +28,8 @@ window.slamLab = lab;
 lab.view = view; // benchmark hook
 
 let ws = null;
+// the status while the server builds this page's session (a simulation, a saved map: seconds on a first visit)
+const BUILDING = "connected · building this page's session…";
 let latest = null;
 let drawnSeq = -1;
 let scalarNames = [];
@@ -275,7 +277,7 @@ function connect() {
   for (const k of ['seed', 'hz']) if (query.has(k)) qs.set(k, query.get(k));
   ws = new WebSocket(`${proto}://${location.host}/ws/${page}?${qs}`);
   ws.binaryType = 'arraybuffer';
-  ws.onopen = () => { lab.connected = true; statusEl.textContent = 'connected'; };
+  ws.onopen = () => { lab.connected = true; lab.openedAt = performance.now(); statusEl.textContent = BUILDING; };
   ws.onclose = () => { lab.connected = false; statusEl.textContent = 'disconnected from the lab server'; };
   ws.onmessage = (ev) => { if (typeof ev.data === 'string') onText(ev.data); else onFrame(ev.data); };
 }
@@ -350,9 +352,16 @@ function loop() {
     lab.fps = ((lab.drawn - winDrawn) * 1000) / (now - winStart);
     lab.recvFps = ((lab.frames - winFrames) * 1000) / (now - winStart);
     winStart = now; winDrawn = lab.drawn; winFrames = lab.frames;
-    const p = lab.pose ? lab.pose.map((v) => v.toFixed(2)).join(', ') : '–';
-    statusEl.textContent = `${lab.recvFps.toFixed(1)} frames/s received, ${lab.fps.toFixed(1)} drawn · ` +
-      `pose (${p}) · ${(lab.bytes / Math.max(lab.frames, 1) / 1024).toFixed(1)} KiB/frame`;
+    // the rates only once the session is there; before it the status says what the page waits for, and after a
+    // disconnect it keeps saying so (0 frames/s would read as a stalled page)
+    if (lab.connected && lab.hello === null) {
+      statusEl.textContent = `${BUILDING} ${((now - lab.openedAt) / 1000).toFixed(0)} s`;
+    } else if (lab.connected) {
+      const p = lab.pose ? lab.pose.map((v) => v.toFixed(2)).join(', ') : '–';
+      statusEl.textContent = `${lab.recvFps.toFixed(1)} frames/s received, ${lab.fps.toFixed(1)} drawn · ` +
+        `pose (${p}) · ${(lab.bytes / Math.max(lab.frames, 1) / 1024).toFixed(1)} KiB/frame`;
+    }
+    lab.statusTicks += 1;
   }
   requestAnimationFrame(loop);
 }
