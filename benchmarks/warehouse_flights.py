@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -302,6 +303,7 @@ def main() -> None:
           f"{np.degrees(frame[2]):+.3f} deg (flight 1's drift; map-frame errors below are against it)")
     maps = [est1.snapshot()]
     if args.maps_dir:
+        Path(args.maps_dir).mkdir(parents=True, exist_ok=True)
         est1.save_map(f"{args.maps_dir}/flight1.db")
     c = maps[0].counts()
     print(f"flight 1 (cold start): {t1:.0f} s; map {c['keyframes']} keyframes, {c['edges']} edges, "
