@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -11,6 +10,7 @@ from typing import Any
 
 from slam2d.config import parse_set_args
 from slam2d.io.atomic import check_output, refuse_overwrite_input, write_text_atomic
+from slam2d.io.json_text import dumps
 
 
 def add_set_argument(p: argparse.ArgumentParser) -> None:
@@ -42,7 +42,7 @@ def print_table(rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> No
 
 
 def write_json(path: str | Path, record: Mapping[str, Any]) -> None:
-    text = json.dumps(record, indent=2, sort_keys=True, default=float) + "\n"  # serialise before touching the file
+    text = dumps(record, indent=2, sort_keys=True) + "\n"  # serialised before the file is touched; NaN as null
     write_text_atomic(path, text)
 
 

@@ -45,6 +45,7 @@ import numpy as np
 
 from slam2d.config import split_overrides, to_dict, with_overrides
 from slam2d.io.atomic import write_text_atomic
+from slam2d.io.json_text import json_ready
 from slam2d.lab.registry import estimator_names, get_spec, make_config
 from slam2d.lab.store import QUARANTINE_FILE as QUARANTINE_FILE
 from slam2d.lab.store import STORE_FILE as STORE_FILE
@@ -289,21 +290,6 @@ def load_sweep(path: str | Path) -> SweepPlan:
 
 
 # ------------------------------------------------------------------------------------------------- the job
-def _clean(v: Any) -> Any:
-    """JSON-safe copy: numpy scalars/arrays to Python, non-finite floats to None."""
-    if isinstance(v, Mapping):
-        return {str(k): _clean(x) for k, x in v.items()}
-    if isinstance(v, list | tuple):
-        return [_clean(x) for x in v]
-    if isinstance(v, np.ndarray):
-        return _clean(v.tolist())
-    if isinstance(v, np.generic):
-        return _clean(v.item())
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    return v
-
-
 def evaluate_extra(result: Any, log: Any) -> dict[str, Any]:
     """Consistency and map metrics of one run beyond the runner's: per-step pose NEES and the map error.
 
@@ -351,7 +337,7 @@ def run_job(spec: Mapping[str, Any], seed: int) -> dict[str, Any]:
     except Exception as e:  # a failing run is a result too; the sweep goes on
         rec.update(status="error", error=f"{type(e).__name__}: {e}")
     rec["elapsed_s"] = time.perf_counter() - t0
-    return _clean(rec)  # type: ignore[no-any-return]
+    return json_ready(rec)  # type: ignore[no-any-return]
 
 
 # ------------------------------------------------------------------------------------------------- running

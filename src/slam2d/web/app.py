@@ -26,6 +26,7 @@ from fastapi.staticfiles import StaticFiles
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
 from slam2d.association import METHODS
+from slam2d.io.json_text import dumps
 from slam2d.lab.registry import estimator_names
 from slam2d.web.chapters import render_chapter
 from slam2d.web.fleet import register_fleet
@@ -113,7 +114,7 @@ class Connection:
 
     async def send_json(self, obj: dict[str, Any]) -> None:
         async with self.lock:
-            await self.ws.send_text(json.dumps(obj, allow_nan=False, default=_json_default))
+            await self.ws.send_text(dumps(obj))  # numpy values as Python, NaN and inf as null
 
     async def receiver(self) -> None:
         """Read commands as they arrive; queue what the token bucket (and the bounded queue) allows, drop the rest."""
@@ -172,7 +173,7 @@ class Connection:
             async with self.lock:
                 await self.ws.send_bytes(frame)
             if state is not None:  # "pushed": not a reply to a command
-                await self.send_json(_nan_safe({**state, "pushed": True}))
+                await self.send_json({**state, "pushed": True})
             seq += 1
             nxt += period
             delay = nxt - time.perf_counter()
@@ -180,25 +181,6 @@ class Connection:
                 nxt = time.perf_counter()
                 delay = 0.0
             await asyncio.sleep(max(delay, 0.0))
-
-
-def _json_default(o: Any) -> Any:
-    import numpy as np
-
-    if isinstance(o, np.generic):
-        return o.item()
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
-def _nan_safe(obj: Any) -> Any:
-    """Replace non-finite floats (JSON has none) by None."""
-    if isinstance(obj, float):
-        return obj if obj == obj and abs(obj) != float("inf") else None
-    if isinstance(obj, dict):
-        return {k: _nan_safe(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_nan_safe(v) for v in obj]
-    return obj
 
 
 LOOPBACK_HOSTS = frozenset({"127.0.0.1", "localhost", "::1", "[::1]"})
@@ -301,7 +283,7 @@ def create_app(*, allow_origins: frozenset[str] = frozenset(), hosts: frozenset[
         try:
             session = await worker.run(spec.make, seed)
             conn = Connection(ws, session, hz, worker)
-            await conn.send_json(_nan_safe(await worker.run(session.hello)))
+            await conn.send_json(await worker.run(session.hello))
             tasks = [asyncio.create_task(conn.receiver()), asyncio.create_task(conn.applier()),
                      asyncio.create_task(conn.sender())]
             done, pending = await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
