@@ -57,3 +57,19 @@ def test_bad_input_gives_a_one_line_error(argv, message, capsys):
 def test_console_script_runs_as_module():
     r = subprocess.run([sys.executable, "-m", "slam2d", "--help"], capture_output=True, text=True, check=True)
     assert "simulate" in r.stdout and "run" in r.stdout
+
+
+def test_a_saved_log_runs_with_its_own_seed_unless_one_is_given(tmp_path):
+    log = tmp_path / "loop.npz"
+    assert main(["simulate", "--scenario", "loop", "--seed", "3", "--out", str(log), "--set", "steps=30"]) == 0
+    recs = {}
+    for name, extra in (("log", []), ("scenario", ["--scenario", "loop", "--seed", "3", "--set", "steps=30"]),
+                        ("given", ["--seed", "5"])):
+        out = tmp_path / f"{name}.json"
+        src = [] if name == "scenario" else ["--log", str(log)]
+        assert main(["run", *src, *extra, "--estimator", "fastslam", "--set", "particles=20", "--json", str(out)]) == 0
+        recs[name] = json.loads(out.read_text())
+    assert recs["log"]["seed"] == 3 and recs["given"]["seed"] == 5
+    # the log's own seed is the scenario run's: same estimator stream, the same numbers (FastSLAM draws from it)
+    assert recs["log"]["ate_rmse_m"] == recs["scenario"]["ate_rmse_m"]
+    assert recs["given"]["ate_rmse_m"] != recs["log"]["ate_rmse_m"]

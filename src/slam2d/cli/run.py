@@ -55,7 +55,9 @@ def register(sub: Any) -> None:
                         "(victoria-park)")
     p.add_argument("--estimator", default="dead-reckoning",
                    help=f"one of: {', '.join(estimator_names())}; with --robot all: {', '.join(MULTI_ESTIMATORS)}")
-    p.add_argument("--seed", type=int, default=0, help="seed for the simulation and the estimator (default 0)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="seed for the simulation and the estimator (default 0; with --log, the seed the log was "
+                        "simulated with, so that the run and its record match 'run --scenario ... --seed' on it)")
     p.add_argument("--json", default=None, metavar="OUT", help="write the flat result record as JSON")
     p.add_argument("--trajectory", default=None, metavar="OUT.txt",
                    help="write the final trajectory as TUM 'stamp x y z qx qy qz qw' (a CARMEN log's own stamps)")
@@ -105,6 +107,9 @@ def _literal(text: str) -> Any:
 
 
 def cmd(args: argparse.Namespace) -> int:
+    log = Log.load(args.log) if args.log else None
+    if args.seed is None:  # a saved log's own seed (its metadata), else 0
+        args.seed = int(log.metadata.get("seed", 0)) if log is not None else 0
     check_number("--seed", args.seed, low=0, high=2**63 - 1)
     check_number("--max-steps", args.max_steps, low=1)
     check_number("--max-time", args.max_time, low=0, low_open=True)
@@ -116,7 +121,6 @@ def cmd(args: argparse.Namespace) -> int:
         raise ValueError(f"--marker-survey needs --estimator lidar-lifelong (got {args.estimator!r})")
     if args.map_in or args.map_out:
         return _cmd_session(args)
-    log = Log.load(args.log) if args.log else None
     problems: dict[str, int] = {}
     if args.dataset and is_carmen_source(args.dataset):
         log = load_laser_log(args.dataset, args.data_dir, args.max_steps, args.max_time)
