@@ -111,3 +111,22 @@ def test_ate_and_rpe_are_blind_to_any_rigid_motion_of_the_estimate(tx, ty, th, s
     np.testing.assert_allclose(compose(ate(moved, traj).alignment, np.array([tx, ty, th])), [0, 0, 0], atol=1e-8)
     r = rpe(moved, traj, delta=3)
     assert r.trans_rmse_m < 1e-8 and r.rot_rmse_rad < 1e-8
+
+
+def test_a_log_without_the_back_ends_input_is_refused_not_dead_reckoned() -> None:
+    import dataclasses
+
+    from slam2d.lab.runner import run_named
+    from slam2d.sim import ScenarioConfig, simulate
+
+    with pytest.raises(ValueError, match="'lidar' needs lidar scans; grid has none"):
+        run_named("lidar", "grid", overrides={"steps": 20})
+    log = simulate(ScenarioConfig(name="room", steps=30), 0)
+    assert log.scan_step is not None and len(log.scan_step)
+    ranges_only = dataclasses.replace(log, obs_bearing_rad=np.full_like(log.obs_bearing_rad, np.nan))
+    for name in ("ekf", "fastslam", "graph"):
+        with pytest.raises(ValueError, match=f"'{name}' needs landmark bearings; room's observations are ranges only"):
+            run_named(name, log=ranges_only)
+    # the same logs serve the back ends that measure with what they have
+    assert run_named("range-only-ekf", log=ranges_only)[1]["steps"] == 30
+    assert run_named("lidar", log=log)[1]["steps"] == 30

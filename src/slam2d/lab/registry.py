@@ -24,6 +24,9 @@ class EstimatorSpec:
     config_cls: type
     factory: Callable[[Any], Estimator]
     description: str
+    needs: str = ""
+    """what the back end measures with: "scans" (lidar), "bearings" (landmark bearings) or "" (odometry alone will
+    do); a log without it is refused by the runner, rather than dead-reckoned under the estimator's name."""
 
 
 ESTIMATORS: dict[str, EstimatorSpec] = {}
@@ -32,9 +35,11 @@ ESTIMATORS: dict[str, EstimatorSpec] = {}
 INHERITED_SCALARS = ("gps_std_m",)
 
 
-def register_estimator(name: str, config_cls: type, factory: Callable[[Any], Estimator], description: str) -> None:
-    """Make an estimator available by ``name`` to the runner, CLI, sweeps and web lab."""
-    ESTIMATORS[name] = EstimatorSpec(name, config_cls, factory, description)
+def register_estimator(name: str, config_cls: type, factory: Callable[[Any], Estimator], description: str,
+                       needs: str = "") -> None:
+    """Make an estimator available by ``name`` to the runner, CLI, sweeps and web lab (``needs``: see
+    :class:`EstimatorSpec`)."""
+    ESTIMATORS[name] = EstimatorSpec(name, config_cls, factory, description, needs)
 
 
 register_estimator("dead-reckoning", DeadReckoningConfig, DeadReckoning, "odometry integration only (baseline)")
@@ -62,6 +67,11 @@ _BUILTIN: dict[str, tuple[str, str, str, str]] = {
 }
 
 
+#: the built-in back ends' inputs beyond odometry (:attr:`EstimatorSpec.needs`)
+_NEEDS = {"lidar": "scans", "lidar-lifelong": "scans", "ekf": "bearings", "fastslam": "bearings",
+          "fastslam2": "bearings", "graph": "bearings"}
+
+
 def _load_builtin() -> None:
     """Register the built-in back ends that are not registered yet (lazy: importing them costs time)."""
     import importlib
@@ -69,7 +79,7 @@ def _load_builtin() -> None:
     for name, (module, cfg_name, cls_name, description) in _BUILTIN.items():
         if name not in ESTIMATORS:
             mod = importlib.import_module(module)
-            register_estimator(name, getattr(mod, cfg_name), getattr(mod, cls_name), description)
+            register_estimator(name, getattr(mod, cfg_name), getattr(mod, cls_name), description, _NEEDS.get(name, ""))
 
 
 def estimator_names() -> list[str]:

@@ -16,7 +16,7 @@ from slam2d.estimator import Estimate, Estimator, LoopEvent, SupportsLoopClosure
 from slam2d.eval.association import run_association_scores
 from slam2d.eval.trajectory import ate, rpe
 from slam2d.geometry import se2
-from slam2d.lab.registry import association_method, get_spec, make_config
+from slam2d.lab.registry import EstimatorSpec, association_method, get_spec, make_config
 from slam2d.log import Log
 from slam2d.sim.scenarios import MEMORY_ENV, ScenarioConfig, memory_limit_mb
 from slam2d.sim.simulator import simulate, spawn_streams
@@ -180,6 +180,17 @@ def _check_particle_memory(name: str, cfg: object, log: Log) -> None:
                          f"{need_mb:.3g} MB, over the limit of {limit_mb:g} MB; set {MEMORY_ENV} to allow it")
 
 
+def check_inputs(spec: EstimatorSpec, log: Log) -> None:
+    """Refuse a log that lacks what the back end measures with (:attr:`EstimatorSpec.needs`): it would only be
+    dead-reckoned, under the estimator's name."""
+    what = str(log.metadata.get("dataset", log.metadata.get("scenario", "this log")))
+    if spec.needs == "scans" and (log.scan_step is None or len(log.scan_step) == 0):
+        raise ValueError(f"estimator {spec.name!r} needs lidar scans; {what} has none")
+    if spec.needs == "bearings" and len(log.obs_bearing_rad) and not np.isfinite(log.obs_bearing_rad).any():
+        raise ValueError(f"estimator {spec.name!r} needs landmark bearings; {what}'s observations are ranges only "
+                         "(use range-only-ekf or range-only-graph)")
+
+
 def run_named(
     estimator: str,
     scenario: str | None = "room",
@@ -207,6 +218,7 @@ def run_named(
         log = simulate(cfg, seed)
     else:
         (est_over,) = split_overrides(rest, spec.config_cls)
+    check_inputs(spec, log)
     # "auto" association is resolved from the whole log: known ids when any observation carries one
     est_cfg = make_config(estimator, {**est_over, **est_only}, log.metadata, has_ids=bool(np.any(log.obs_id >= 0)))
     _check_particle_memory(estimator, est_cfg, log)
