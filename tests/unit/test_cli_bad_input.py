@@ -149,6 +149,7 @@ CASES: list[tuple[str, str, str]] = [
     ("map-server", "map-server --db {d}/f.db --survey-sigma 0", "--survey-sigma"),
     ("map-server", "map-server --db {d}/f.db --survey-sigma nan", "--survey-sigma"),
     ("drone", "drone --server nowhere --drone 0", "--server"),
+    ("drone", "drone --server nohost.invalid:5555 --drone 0", "cannot resolve host 'nohost.invalid'"),
     ("drone", "drone --server 127.0.0.1:1 --drone -1", "--drone"),
     ("drone", "drone --server 127.0.0.1:1 --drone 0 --minutes nan", "--minutes"),
     ("drone", "drone --server 127.0.0.1:1 --drone 0 --minutes -1", "--minutes"),

@@ -4,6 +4,7 @@ ZeroMQ (see :mod:`slam2d.fleet`)."""
 from __future__ import annotations
 
 import argparse
+import socket
 import sys
 from typing import Any
 
@@ -104,6 +105,10 @@ def parse_server(text: str) -> str:
     host, _, port = rest.rpartition(":")
     if scheme != "tcp" or not host or not port.isdigit() or not 0 < int(port) < 65536:
         raise ValueError(f"--server: expected tcp://HOST:PORT or HOST:PORT with a port in 1..65535, got {text!r}")
+    try:  # a name that does not resolve fails now; a server that is down is waited for (it may be restarting)
+        socket.getaddrinfo(host.strip("[]"), int(port), type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as e:
+        raise ValueError(f"--server: cannot resolve host {host!r} ({getattr(e, 'strerror', None) or e})") from None
     return addr
 
 
