@@ -197,3 +197,18 @@ def test_cli_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[s
         assert main(args) == 2
         lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 1 and needle in lines[0], lines
+
+
+def test_a_second_server_on_the_same_database_is_refused(tmp_path: Path,
+                                                         procs: list[subprocess.Popen[bytes]]) -> None:
+    """Two servers on one file would hand out the same drone ids and keyframe keys (the second crashed on the first
+    drone it met): the second is refused at start, the first serves on."""
+    db = tmp_path / "one.db"
+    first, ep = start_server(db)
+    procs.append(first)
+    second = slam2d("map-server", "--db", str(db), "--port", "0", stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    procs.append(second)
+    _, err = second.communicate(timeout=120)
+    assert second.returncode == 2, err.decode()
+    assert f"another map-server has {db} open (lock one.db.lock is held)" in err.decode()
+    assert first.poll() is None and status(ep, timeout_s=10)["drones"] == []

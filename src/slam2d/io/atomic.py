@@ -174,3 +174,21 @@ def write_text_atomic(path: PathLike, text: str) -> Path:
     with atomic_write(path, "w") as fh:
         fh.write(text)
     return Path(path)
+
+
+@contextlib.contextmanager
+def exclusive(path: str | Path, held: str) -> Iterator[None]:
+    """Hold an advisory lock on ``path`` (created if missing) for the block, without waiting: when another process
+    holds it, ``ValueError(f"{held} (lock {name} is held)")``. The lock goes with the process: a crash releases it."""
+    import fcntl
+
+    path = Path(path)
+    with path.open("a") as f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"{held} (lock {path.name} is held)") from None
+        try:
+            yield
+        finally:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)

@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from slam2d.config import split_overrides, to_dict, with_overrides
-from slam2d.io.atomic import write_text_atomic
+from slam2d.io.atomic import exclusive, write_text_atomic
 from slam2d.io.json_text import json_ready
 from slam2d.lab.registry import estimator_names, get_spec, make_config
 from slam2d.lab.store import QUARANTINE_FILE as QUARANTINE_FILE
@@ -421,24 +421,8 @@ def run_sweep(
     say = report or (lambda msg: print(msg, file=sys.stderr))
     store = ResultStore(out_dir)
     store.directory.mkdir(parents=True, exist_ok=True)
-    with _exclusive(store.directory / LOCK_FILE):
+    with exclusive(store.directory / LOCK_FILE, f"another sweep is writing to {store.directory}"):
         return _run_locked(plan, store, executor, say, progress, max_in_flight, on_record)
-
-
-@contextlib.contextmanager
-def _exclusive(path: Path) -> Iterator[None]:
-    """Hold an advisory lock so that two sweeps never write one store at the same time."""
-    import fcntl
-
-    with path.open("a") as f:
-        try:
-            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise ValueError(f"another sweep is writing to {path.parent} (lock {path.name} is held)") from None
-        try:
-            yield
-        finally:
-            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
 
 
 def _run_locked(plan: SweepPlan, store: ResultStore, executor: cf.Executor, say: Callable[[str], None],
