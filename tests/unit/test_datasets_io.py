@@ -237,6 +237,23 @@ def test_mrclam_errors(tmp_path: Path):
         load_mrclam(tmp_path / "N", 1)
 
 
+@pytest.mark.parametrize(("range_m", "bearing"), [("-3", "0.1"), ("0", "0.1"), ("1e9", "0.1"), ("2.0", "100"),
+                                                  ("2.0", "-3.5")])
+def test_mrclam_measurement_out_of_any_camera_reach_names_its_line(tmp_path: Path, range_m: str,
+                                                                     bearing: str) -> None:
+    """A range or bearing no camera reports is a corrupted line, refused by file:line; taken in, it became the fitted
+    sensor's max range (1e9 m) or field of view (2 pi)."""
+    write_mrclam(tmp_path / "M")
+    meas = tmp_path / "M" / "Robot1_Measurement.dat"
+    lines = meas.read_text().splitlines()
+    t, bar = lines[9].split()[:2]
+    lines[9] = f"{t} {bar} {range_m} {bearing}"
+    meas.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetFormatError, match=r"Robot1_Measurement\.dat:10: range must be in \(0, 170\] m and "
+                                                 r"bearing in \[-pi, pi\] rad, got "):
+        load_mrclam(tmp_path / "M", 1)
+
+
 # ------------------------------------------------------------------------------------------------ Victoria Park
 def write_victoria(folder: Path, steer: float = 0.15, speed: float = 3.0) -> None:
     folder.mkdir(parents=True, exist_ok=True)

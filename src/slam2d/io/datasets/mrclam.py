@@ -60,6 +60,9 @@ ROBOTS = (1, 2, 3, 4, 5)
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
+#: longest range a measurement line may hold (m): ten times the arena's diagonal, far beyond the camera's reach (~5 m)
+MAX_RANGE_M = 170.0
+
 #: residual (in fitted standard deviations, range and bearing combined) beyond which a landmark measurement is listed
 #: as a gross outlier (a misread barcode) in ``metadata['noise_estimate']['gross_outliers']``
 GROSS_SIGMA = 10.0
@@ -249,9 +252,13 @@ def _read_robot(folder: Path, robot: int, ground_truth: bool, odometry_delay_s: 
                       ("time", "barcode", "range", "bearing"), min_rows=0)
     check_nondecreasing(meas, 0, "time")
     m_bar = check_integer(meas, 1, "barcode")
-    if np.any(meas.data[:, 2] <= 0):
-        i = int(np.flatnonzero(meas.data[:, 2] <= 0)[0])
-        raise DatasetFormatError(f"{meas.where(i)}: range must be > 0, got {meas.data[i, 2]!r}")
+    # a range or bearing no camera in the 15 x 8 m arena can report is a corrupted line: taken in, it would become the
+    # fitted sensor's max range or field of view (a range of 1e9 m did)
+    bad = (meas.data[:, 2] <= 0) | (meas.data[:, 2] > MAX_RANGE_M) | (np.abs(meas.data[:, 3]) > np.pi)
+    if np.any(bad):
+        i = int(np.flatnonzero(bad)[0])
+        raise DatasetFormatError(f"{meas.where(i)}: range must be in (0, {MAX_RANGE_M:g}] m and bearing in "
+                                 f"[-pi, pi] rad, got {float(meas.data[i, 2])} m, {float(meas.data[i, 3])} rad")
     gt = None
     if ground_truth:
         gt = read_table(require_file(folder / f"Robot{robot}_Groundtruth.dat", f"ground truth of robot {robot}"),
