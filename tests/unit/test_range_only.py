@@ -43,3 +43,18 @@ def test_beacons_with_too_few_ranges_are_left_out():
     res = range_only_slam(log, RangeOnlyConfig(range_std_m=0.1))
     counts = np.bincount(log.obs_id[log.obs_id >= 0])
     assert set(res.beacon_ids.tolist()) == set(np.flatnonzero(counts >= 3).tolist())
+
+
+def test_standstill_steps_do_not_break_the_solve():
+    """A standstill's odometry covariance is zero (MRCLAM logs many; the solve raised "Singular matrix"): its factor
+    gets a floor. Here three readings say "no motion" (zeroed), and the solve still beats dead reckoning."""
+    import dataclasses
+
+    log = slam2d.simulate("loop", seed=2, landmarks=8, steps=120, **{"sensor.max_range_m": 60.0})
+    odo = log.odometry.copy()
+    odo[[30, 31, 80]] = 0.0
+    res = range_only_slam(dataclasses.replace(log, odometry=odo),
+                          RangeOnlyConfig(motion=slam2d.ScenarioConfig().motion, range_std_m=0.1))
+    assert np.all(np.isfinite(res.trajectory))
+    ro, dr = (slam2d.ate(t, log.true_poses).rmse_m for t in (res.trajectory, res.dead_reckoning))
+    assert ro < 0.5 * dr, (ro, dr)

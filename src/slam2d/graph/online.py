@@ -47,7 +47,7 @@ from slam2d.graph.optimizer import Optimizer, OptimizerConfig
 from slam2d.graph.problem import chi2_per_dof
 from slam2d.graph.sliding_window import WindowSolve, solve_window
 from slam2d.log import Step
-from slam2d.models.motion import odometry_factor
+from slam2d.models.motion import ODOMETRY_FLOOR_VAR, odometry_factor
 from slam2d.models.sensors import (
     range_bearing,
     range_bearing_inverse,
@@ -57,8 +57,6 @@ from slam2d.models.sensors import (
 
 Array = NDArray[np.float64]
 
-#: added to every odometry covariance before inverting it (see ``GraphSLAM.step``)
-ODOMETRY_FLOOR_VAR = 1e-8
 
 
 class GraphSLAM(EstimatorLifecycle):

@@ -19,7 +19,7 @@ from slam2d.geometry.trilateration import trilaterate
 from slam2d.graph.graph import FactorGraph, Values
 from slam2d.graph.optimizer import OptimizerConfig, Summary, optimize
 from slam2d.log import Log, Step
-from slam2d.models.motion import MotionNoise, odometry_factor
+from slam2d.models.motion import ODOMETRY_FLOOR_VAR, MotionNoise, odometry_factor
 from slam2d.models.sensors import SensorConfig
 
 Array = NDArray[np.float64]
@@ -83,7 +83,12 @@ def solve_range_only(initial_pose: Array, odometry: Array, obs_step: NDArray[np.
 
     graph = FactorGraph()
     t = np.arange(1, len(odometry) + 1)
-    graph.add_between(t - 1, t, *odometry_factor(odometry, cfg.motion))
+    # a standstill's odometry covariance is zero (MRCLAM logs many): only those steps get the floor
+    still = ~np.any(odometry != 0, axis=1)
+    odo_info = np.empty((len(odometry), 3, 3))
+    odo_info[~still] = odometry_factor(odometry[~still], cfg.motion)[1]
+    odo_info[still] = odometry_factor(odometry[still], cfg.motion, floor_var=ODOMETRY_FLOOR_VAR)[1]
+    graph.add_between(t - 1, t, np.array(odometry, dtype=np.float64), odo_info)
     info = np.full((len(steps), 1, 1), 1.0 / cfg.range_std_m**2)
     kernel = None if cfg.robust_kernel == "none" else cfg.robust_kernel
     graph.add_range(steps, ids, ranges[:, None], info, robust=kernel, robust_param=cfg.robust_param)

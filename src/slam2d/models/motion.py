@@ -101,6 +101,11 @@ def odometry_covariance(u: ArrayLike, noise: MotionNoise) -> Array:
     return np.einsum("...ij,...j,...kj->...ik", v, var, v)
 
 
+#: added to an odometry covariance before inverting it where it may be zero (a standstill): online graph SLAM adds it
+#: to every step, range-only graph SLAM to the standstills
+ODOMETRY_FLOOR_VAR = 1e-8
+
+
 def odometry_factor(u: ArrayLike, noise: MotionNoise, *, floor_var: float = 0.0) -> tuple[Array, Array]:
     """Measurement and information of the between factor that odometry ``u`` becomes: ``(z, info)``.
 
