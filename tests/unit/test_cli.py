@@ -73,3 +73,15 @@ def test_a_saved_log_runs_with_its_own_seed_unless_one_is_given(tmp_path):
     # the log's own seed is the scenario run's: same estimator stream, the same numbers (FastSLAM draws from it)
     assert recs["log"]["ate_rmse_m"] == recs["scenario"]["ate_rmse_m"]
     assert recs["given"]["ate_rmse_m"] != recs["log"]["ate_rmse_m"]
+
+
+def test_version_and_run_options_that_do_not_apply(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.startswith("slam2d ")
+    for args, msg in ((["--estimator", "ekf", "--no-loop-closure"], "--no-loop-closure: estimator 'ekf' has no loop"),
+                      (["--estimator", "dead-reckoning", "--association", "jcbb"],
+                       "--association: estimator 'dead-reckoning' does not associate")):
+        assert main(["run", "--scenario", "room", "--set", "steps=5", *args]) == 2
+        assert msg in capsys.readouterr().err
+    assert main(["run", "--scenario", "room", "--set", "steps=5", "--estimator", "ekf", "--association", "auto"]) == 0

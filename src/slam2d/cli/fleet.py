@@ -68,23 +68,23 @@ def cmd_server(args: argparse.Namespace) -> int:
     check_number("--port", args.port, low=0, high=65535)
     check_number("--survey-sigma", args.survey_sigma, low=0, low_open=True, high=10.0)
     survey = () if args.marker_survey is None else read_marker_survey(args.marker_survey)  # before the db is touched
-    # one server per database: a second one would hand out the same drone ids and keyframe keys
-    with exclusive(f"{args.db}.lock", f"another map-server has {args.db} open"):
-        server = MapServer(args.db, JointConfig(surveyed_markers=survey, survey_sigma_m=args.survey_sigma),
-                           durable=args.durable)
+    server = MapServer(args.db, JointConfig(surveyed_markers=survey, survey_sigma_m=args.survey_sigma),
+                       durable=args.durable)  # a path that is not a fleet database fails here, before the lock
 
-        def ready(endpoint: str) -> None:
-            print(f"map-server: listening on {endpoint} (db {args.db}, {len(server.drones)} drones, "
-                  f"{len(server.joint.poses)} keyframes, {len(survey)} surveyed markers)", flush=True)
+    def ready(endpoint: str) -> None:
+        print(f"map-server: listening on {endpoint} (db {args.db}, {len(server.drones)} drones, "
+              f"{len(server.joint.poses)} keyframes, {len(survey)} surveyed markers)", flush=True)
 
-        import zmq
+    import zmq
 
-        try:
+    try:
+        # one server per database: a second one would hand out the same drone ids and keyframe keys
+        with exclusive(f"{args.db}.lock", f"another map-server has {args.db} open"):
             server.serve(args.host, args.port, ready=ready)
-        except zmq.ZMQError as e:
-            raise OSError(e.errno, f"cannot bind tcp://{args.host}:{args.port}: {e.strerror}") from None
-        finally:
-            server.close()
+    except zmq.ZMQError as e:
+        raise OSError(e.errno, f"cannot bind tcp://{args.host}:{args.port}: {e.strerror}") from None
+    finally:
+        server.close()
     print("map-server: stopped", flush=True)
     return 0
 

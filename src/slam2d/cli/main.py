@@ -37,9 +37,19 @@ EXIT_BUG = 3
 EXIT_INTERRUPTED = 130
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("slam2d")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "(not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="slam2d", description="Classical 2D SLAM: simulate, estimate, evaluate.",
                                      epilog="--debug (anywhere) shows the full stack of an error.")
+    parser.add_argument("--version", action="version", version=f"slam2d {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         importlib.import_module(name).register(sub)

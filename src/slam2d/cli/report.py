@@ -14,8 +14,9 @@ from slam2d.io.atomic import check_output
 def register(sub: Any) -> None:
     p = sub.add_parser("report", help="write an HTML report of a result directory",
                        description="Summarise DIR (results.jsonl from 'slam2d sweep', scaling.json / "
-                                   "consistency.json from 'slam2d experiment ... --out DIR') as DIR/report/index.html "
-                                   "with ATE boxplots, NEES with its chi-square band and scaling curves.")
+                                   "consistency.json from 'slam2d experiment scaling|consistency --json "
+                                   "DIR/NAME.json') as DIR/report/index.html with ATE boxplots, NEES with its "
+                                   "chi-square band and scaling curves.")
     p.add_argument("directory", metavar="DIR")
     p.add_argument("--out", default=None, metavar="OUTDIR", help="where to write (default DIR/report)")
     p.set_defaults(func=cmd)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from typing import Any
 
 from slam2d.association import METHODS
@@ -22,7 +23,7 @@ from slam2d.io.carmen import is_carmen_source
 from slam2d.io.datasets import DATASETS, load_dataset
 from slam2d.io.survey import read_marker_survey
 from slam2d.lab.multi_robot import MULTI_ESTIMATORS, run_multi, table_rows
-from slam2d.lab.registry import estimator_names
+from slam2d.lab.registry import estimator_names, get_spec
 from slam2d.lab.runner import run_named
 from slam2d.log import Log
 from slam2d.sim.scenarios import SCENARIOS
@@ -54,7 +55,8 @@ def register(sub: Any) -> None:
                    help="a loader option (repeatable), e.g. dt_s=0.2 or others=keep (mrclam), max_range_m=30 "
                         "(victoria-park)")
     p.add_argument("--estimator", default="dead-reckoning",
-                   help=f"one of: {', '.join(estimator_names())}; with --robot all: {', '.join(MULTI_ESTIMATORS)}")
+                   help=f"one of: {', '.join(estimator_names())} (default dead-reckoning); with --robot all: "
+                        f"{', '.join(MULTI_ESTIMATORS)}")
     p.add_argument("--seed", type=int, default=None,
                    help="seed for the simulation and the estimator (default 0; with --log, the seed the log was "
                         "simulated with, so that the run and its record match 'run --scenario ... --seed' on it)")
@@ -63,8 +65,9 @@ def register(sub: Any) -> None:
                    help="write the final trajectory as TUM 'stamp x y z qx qy qz qw' (a CARMEN log's own stamps)")
     p.add_argument("--map", default=None, metavar="OUT.png",
                    help="write the occupancy map of the final trajectory over the log's lidar scans as PNG")
-    p.add_argument("--association", default=None, choices=list(METHODS),
-                   help="data association method of the estimator (estimators that associate)")
+    p.add_argument("--association", default=None, choices=["auto", *METHODS],
+                   help="data association method of the estimator (estimators that associate; their default, auto: "
+                        "known ids when the data carry them, else mahalanobis)")
     p.add_argument("--no-loop-closure", action="store_true",
                    help="switch the estimator's loop closure off (estimators that have one, e.g. graph)")
     p.add_argument("--map-in", default=None, metavar="A.db",
@@ -132,9 +135,14 @@ def cmd(args: argparse.Namespace) -> int:
     elif args.dataset_path or args.max_steps or args.max_time or args.dataset_opt:
         raise ValueError("--dataset-path, --dataset-opt, --max-steps and --max-time need --dataset NAME")
     overrides = _overrides(args)
+    fields = {f.name for f in dataclasses.fields(get_spec(args.estimator).config_cls)}
     if args.association:
+        if "association" not in fields:
+            raise ValueError(f"--association: estimator {args.estimator!r} does not associate observations")
         overrides["estimator.association.method"] = args.association
     if args.no_loop_closure:
+        if "loop_closure" not in fields:
+            raise ValueError(f"--no-loop-closure: estimator {args.estimator!r} has no loop closure")
         overrides["estimator.loop_closure"] = "false"
     result, record = run_named(args.estimator, args.scenario or "room", seed=args.seed,
                                overrides=overrides, log=log, progress=None)
