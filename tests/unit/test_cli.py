@@ -85,3 +85,14 @@ def test_version_and_run_options_that_do_not_apply(capsys):
         assert main(["run", "--scenario", "room", "--set", "steps=5", *args]) == 2
         assert msg in capsys.readouterr().err
     assert main(["run", "--scenario", "room", "--set", "steps=5", "--estimator", "ekf", "--association", "auto"]) == 0
+
+
+def test_demo_skips_a_back_end_the_world_gives_nothing_to(tmp_path, capsys, monkeypatch):
+    import slam2d.cli.demo as demo
+
+    monkeypatch.setattr(demo, "estimator_names", lambda: ["dead-reckoning", "lidar"])
+    assert main(["demo", "--scenario", "grid", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "skipped: estimator 'lidar' needs lidar scans; grid has none" in out
+    runs = json.loads((tmp_path / "demo.json").read_text())["runs"]
+    assert [r["estimator"] for r in runs] == ["dead-reckoning"]
