@@ -191,6 +191,16 @@ def test_rows_that_disagree_with_the_recorded_counts_are_caught(tmp_path):
         MapStore.read(p)
 
 
+def test_a_metadata_value_that_is_not_json_names_the_file(tmp_path):
+    p = MapStore.write(tmp_path / "m.db", _snapshot())
+    con = sqlite3.connect(p)
+    con.execute("UPDATE meta SET value = '{bad' WHERE key = 'counts'")
+    con.commit()
+    con.close()
+    with pytest.raises(MapFormatError, match=r"m\.db: corrupt slam2d map \(a metadata value is not JSON: "):
+        MapStore.info(p)
+
+
 def test_saving_over_the_loaded_map_is_atomic(tmp_path):
     p = MapStore.write(tmp_path / "same.db", _snapshot(seed=0))
     loaded = MapStore.read(p)

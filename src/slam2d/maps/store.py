@@ -337,6 +337,8 @@ class MapStore:
                       for t in ("keyframes", "nodes", "edges")}
         except sqlite3.DatabaseError as e:
             raise MapFormatError(f"{path}: corrupt or truncated slam2d map ({e})") from None
+        except json.JSONDecodeError as e:
+            raise MapFormatError(f"{path}: corrupt slam2d map (a metadata value is not JSON: {e})") from None
         finally:
             con.close()
         if meta.get("format") != "slam2d-map":
