@@ -91,6 +91,7 @@ CASES: list[tuple[str, str, str]] = [
     ("report", "report {file}", "file"),
     ("report", "report {dir}", "results.jsonl"),
     ("report", "report {res} --out {file}", "folder"),
+    ("report", "report {broken}", "scaling.json:2: not JSON"),
     # sweep
     ("sweep", "sweep {dir} --out {d}/sw", "directory"),
     ("sweep", "sweep {d}/missing.toml --out {d}/sw", "missing.toml"),
@@ -203,9 +204,11 @@ def scratch(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
         (d / f"{name}.csv").write_text(text)
     (d / "res").mkdir()
     (d / "res" / "results.jsonl").write_text("")
+    (d / "broken").mkdir()
+    (d / "broken" / "scaling.json").write_text('{"fits":\n  }\n')
     return {"d": str(d), "dir": str(d / "adir"), "file": str(d / "afile"), "g2o": str(d / "g.g2o"),
             "survey": str(d / "survey.csv"), "log": str(d / "log.npz"), "toml": str(d / "sweep.toml"),
-            "res": str(d / "res"), **{name: str(d / f"{name}.csv") for name in surveys}}
+            "res": str(d / "res"), "broken": str(d / "broken"), **{name: str(d / f"{name}.csv") for name in surveys}}
 
 
 @pytest.mark.parametrize(("command", "template", "mention"), CASES, ids=[c[1] for c in CASES])

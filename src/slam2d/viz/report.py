@@ -161,6 +161,14 @@ CSS = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
        "th{background:#f3f3f3}td:first-child{text-align:left}img{max-width:100%}")
 
 
+
+def _read_json(path: Path) -> Any:
+    """An experiment's JSON record; a file that is not JSON is named with the parser's line and column."""
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}:{e.lineno}: not JSON ({e.msg}, column {e.colno})") from None
+
 def build_report(directory: str | Path, out: str | Path | None = None) -> Path:
     """Write ``index.html`` and its PNG figures into ``out`` (default ``DIRECTORY/report``); returns the page."""
     d = Path(directory)
@@ -210,7 +218,7 @@ def build_report(directory: str | Path, out: str | Path | None = None) -> Path:
     scaling_path = d / "scaling.json"
     if scaling_path.exists():
         found = True
-        sc = json.loads(scaling_path.read_text())
+        sc = _read_json(scaling_path)
         parts.append("<h2>Scaling (grid scenario)</h2>")
         parts.append(_table([{"estimator": k, **v} for k, v in sc.get("fits", {}).items()],
                             ["estimator", "slope_vs_mapped", "end_slope_vs_mapped", "slope_vs_landmarks", "claim",
@@ -225,7 +233,7 @@ def build_report(directory: str | Path, out: str | Path | None = None) -> Path:
     cons_path = d / "consistency.json"
     if cons_path.exists():
         found = True
-        cs = json.loads(cons_path.read_text())
+        cs = _read_json(cons_path)
         parts.append(f"<h2>Consistency ({html.escape(str(cs.get('scenario')))}, {cs.get('seeds')} seeds)</h2>")
         res = cs.get("results", {})
         parts.append(_table([{"estimator": k, "mean NEES": v["overall_mean"], "band low": v["band"][0],
