@@ -31,6 +31,8 @@ CASES: list[tuple[str, str, str]] = [
     ("optimize", "optimize {g2o} --out {g2o}", "--force"),
     ("optimize", "optimize {g2o} --out {d}/o.g2o --json {g2o}", "--force"),
     ("optimize", "optimize {g2o} --out {d}/o.g2o --json {d}/o.g2o", "same file"),
+    # a directory where even root cannot create a file: refused before the work, naming the option
+    ("optimize", "optimize {g2o} --out /proc/o.g2o", "--out /proc/o.g2o: cannot create a file in /proc"),
     ("optimize", "optimize {g2o} --out {dir}", "directory"),
     ("optimize", "optimize {g2o} --out {file}/o.g2o", "not a directory"),
     ("optimize", "optimize {g2o} --out /dev/full", "/dev/full"),

@@ -61,6 +61,13 @@ def check_output(path: PathLike, what: str = "output") -> Path:
         raise NotADirectoryError(errno.ENOTDIR, f"{parent} is not a directory", f"{what} {p}")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise PermissionError(errno.EACCES, f"directory {parent} is not writable", f"{what} {p}")
+    if parent == p.parent:  # it exists: try a file there (root passes os.access where writes fail: /proc, read-only
+        try:  # mounts), so that the error comes before the work, naming the option
+            with tempfile.TemporaryFile(dir=parent):
+                pass
+        except OSError as e:
+            raise PermissionError(e.errno or errno.EACCES, f"cannot create a file in {parent} ({e.strerror})",
+                                  f"{what} {p}") from None
     return p
 
 
