@@ -122,6 +122,8 @@ CASES: list[tuple[str, str, str]] = [
     ("demo", "demo --out {file}", "folder"),
     ("lab", "lab --port 0", "--port"),
     ("lab", "lab --port 70000", "--port"),
+    ("lab", "lab --allow-origin notaurl", "--allow-origin: expected an origin"),
+    ("lab", "lab --allow-origin https://lab.example.org/path", "no path"),
     # map
     ("map", "map info {dir}", "directory"),
     ("map", "map info {d}/missing.db", "missing.db"),
@@ -150,6 +152,8 @@ CASES: list[tuple[str, str, str]] = [
     ("map-server", "map-server --db {d}/f.db --marker-survey {survey_empty}", "no marker"),
     ("map-server", "map-server --db {d}/f.db --marker-survey /dev/zero", "/dev/zero"),
     ("map-server", "map-server --db {d}/f.db --survey-sigma 0", "--survey-sigma"),
+    ("map-server", "map-server --db {d}/f.db --survey-sigma 0.02", "--survey-sigma needs --marker-survey"),
+    ("map-server", "map-server --db {d}/f.db --marker-survey {survey} --survey-sigma 0", "--survey-sigma"),
     ("map-server", "map-server --db {d}/f.db --survey-sigma nan", "--survey-sigma"),
     ("drone", "drone --server nowhere --drone 0", "--server"),
     ("drone", "drone --server nohost.invalid:5555 --drone 0", "cannot resolve host 'nohost.invalid'"),

@@ -20,7 +20,7 @@ def register(sub: Any) -> None:
                        description="Run every registered estimator on one scenario and seed, print a results "
                                    "table, and write a figure of true vs estimated paths and maps.")
     p.add_argument("--scenario", default="room", help=f"one of: {', '.join(sorted(SCENARIOS))} (default room)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the simulation and of every estimator (default 0)")
     p.add_argument("--out", default="out", help="output folder for demo.png and demo.json (default out/)")
     p.set_defaults(func=cmd)
 

@@ -25,8 +25,8 @@ def register(sub: Any) -> None:
     p.add_argument("--marker-survey", default=None, metavar="FILE.csv",
                    help="surveyed floor-marker positions, lines id,x,y (m, warehouse frame): each becomes a prior "
                         "on its marker, anchoring every drone that reads it (read again at every start)")
-    p.add_argument("--survey-sigma", type=float, default=0.01, metavar="M",
-                   help="standard deviation of a surveyed position per axis (m; default 0.01)")
+    p.add_argument("--survey-sigma", type=float, default=None, metavar="M",
+                   help="with --marker-survey: standard deviation of a surveyed position per axis (m; default 0.01)")
     p.add_argument("--durable", action="store_true",
                    help="fsync every commit (survives a power cut, not only a crash of the server; slower)")
     p.set_defaults(func=cmd_server)
@@ -66,6 +66,9 @@ def cmd_server(args: argparse.Namespace) -> int:
     from slam2d.io.survey import read_marker_survey
 
     check_number("--port", args.port, low=0, high=65535)
+    if args.survey_sigma is not None and args.marker_survey is None:
+        raise ValueError("--survey-sigma needs --marker-survey (the positions it is the uncertainty of)")
+    args.survey_sigma = 0.01 if args.survey_sigma is None else args.survey_sigma
     check_number("--survey-sigma", args.survey_sigma, low=0, low_open=True, high=10.0)
     survey = () if args.marker_survey is None else read_marker_survey(args.marker_survey)  # before the db is touched
     server = MapServer(args.db, JointConfig(surveyed_markers=survey, survey_sigma_m=args.survey_sigma),

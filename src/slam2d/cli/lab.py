@@ -7,6 +7,7 @@ import errno
 import os
 import socket
 import sys
+import urllib.parse
 from typing import Any
 
 
@@ -40,6 +41,11 @@ def port_problem(host: str, port: int) -> str | None:
 def cmd(args: argparse.Namespace) -> int:
     if not 0 < args.port < 65536:
         raise ValueError(f"--port must be in 1..65535 (got {args.port})")
+    for origin in args.allow_origin:  # compared with the browser's Origin header: scheme://host[:port], nothing more
+        u = urllib.parse.urlsplit(origin)
+        if u.scheme not in ("http", "https") or not u.hostname or u.path or u.query or u.fragment:
+            raise ValueError(f"--allow-origin: expected an origin such as https://lab.example.org (scheme://host"
+                             f"[:port], no path), got {origin!r}")
     try:
         from slam2d.web.app import serve
     except ImportError as e:

@@ -28,7 +28,7 @@ def register(sub: Any) -> None:
                    help="robust kernel on every factor: huber, cauchy or dcs, optional parameter (default 1)")
     p.add_argument("--init", choices=["file", "chordal"], default="file",
                    help="initial guess: the file's vertices / spanning tree (default) or chordal relaxation")
-    p.add_argument("--max-iterations", type=int, default=100)
+    p.add_argument("--max-iterations", type=int, default=100, help="iteration cap of the solver (default 100)")
     p.add_argument("--lambda-initial", type=float, default=OptimizerConfig().lambda_initial_factor,
                    help="LM initial damping (relative to diag H; default %(default)g; Victoria Park needs ~1)")
     p.add_argument("--linear-solver", default="auto", help="auto, qdldl, cholmod, splu or dense")
@@ -56,7 +56,7 @@ def _chordal(graph: FactorGraph, values: Values, fixed: Any) -> Values:
 
 
 def cmd(args: argparse.Namespace) -> int:
-    check_number("--max-iterations", args.max_iterations, low=0, high=1e6)
+    check_number("--max-iterations", args.max_iterations, low=1, high=1e6)
     check_number("--lambda-initial", args.lambda_initial, low=0, low_open=True, high=1e12)
     kernel, param = _kernel(args.robust)
     check_outputs(args, [args.input], [("--out", args.out), ("--json", args.json)])

@@ -17,7 +17,7 @@ def register(sub: Any) -> None:
                                    "consistency.json from 'slam2d experiment scaling|consistency --json "
                                    "DIR/NAME.json') as DIR/report/index.html with ATE boxplots, NEES with its "
                                    "chi-square band and scaling curves.")
-    p.add_argument("directory", metavar="DIR")
+    p.add_argument("directory", metavar="DIR", help="a sweep's result directory or a folder of experiment records")
     p.add_argument("--out", default=None, metavar="OUTDIR", help="where to write (default DIR/report)")
     p.set_defaults(func=cmd)
 
