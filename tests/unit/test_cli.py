@@ -96,3 +96,19 @@ def test_demo_skips_a_back_end_the_world_gives_nothing_to(tmp_path, capsys, monk
     assert "skipped: estimator 'lidar' needs lidar scans; grid has none" in out
     runs = json.loads((tmp_path / "demo.json").read_text())["runs"]
     assert [r["estimator"] for r in runs] == ["dead-reckoning"]
+
+
+def test_a_reader_that_goes_away_is_not_an_error(tmp_path):
+    """``slam2d datasets | head -1``: the pipe closes before the table is written; exit 0, nothing on stderr."""
+    import os
+    from pathlib import Path
+
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2] / "src"), "SLAM2D_DATA": str(tmp_path)}
+    p = subprocess.Popen([sys.executable, "-m", "slam2d", "datasets"], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, env=env)
+    assert p.stdout is not None and p.stderr is not None
+    p.stdout.close()  # before the child has started: its first write meets a closed pipe
+    with p.stderr:
+        err = p.stderr.read().decode()
+    assert p.wait(timeout=120) == 0, err
+    assert err == ""
