@@ -81,7 +81,9 @@ def test_version_and_run_options_that_do_not_apply(capsys):
     assert e.value.code == 0 and capsys.readouterr().out.startswith("slam2d ")
     for args, msg in ((["--estimator", "ekf", "--no-loop-closure"], "--no-loop-closure: estimator 'ekf' has no loop"),
                       (["--estimator", "dead-reckoning", "--association", "jcbb"],
-                       "--association: estimator 'dead-reckoning' does not associate")):
+                       "--association: estimator 'dead-reckoning' does not associate"),
+                      (["--set", "name=loop"], "--set name=...: the scenario is chosen with --scenario"),
+                      (["--robot", "3"], "--robot 3: a robot of a multi-robot dataset")):
         assert main(["run", "--scenario", "room", "--set", "steps=5", *args]) == 2
         assert msg in capsys.readouterr().err
     assert main(["run", "--scenario", "room", "--set", "steps=5", "--estimator", "ekf", "--association", "auto"]) == 0

@@ -135,6 +135,10 @@ def cmd(args: argparse.Namespace) -> int:
     elif args.dataset_path or args.max_steps or args.max_time or args.dataset_opt:
         raise ValueError("--dataset-path, --dataset-opt, --max-steps and --max-time need --dataset NAME")
     overrides = _overrides(args)
+    if {"name", "scenario.name"} & set(overrides):
+        raise ValueError("--set name=...: the scenario is chosen with --scenario")
+    if args.robot not in (1, "all") and not args.dataset:
+        raise ValueError(f"--robot {args.robot}: a robot of a multi-robot dataset (--dataset mrclam)")
     fields = {f.name for f in dataclasses.fields(get_spec(args.estimator).config_cls)}
     if args.association:
         if "association" not in fields:
