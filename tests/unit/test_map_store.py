@@ -181,22 +181,24 @@ def test_bad_snapshots_and_unwritable_targets_are_refused(tmp_path):
         MapStore.write(tmp_path / "nowhere" / "m.db", _snapshot())
 
 
-def test_rows_that_disagree_with_the_recorded_counts_are_caught(tmp_path):
-    p = MapStore.write(tmp_path / "m.db", _snapshot())
+def _tampered(path, sql):
+    """A saved map with one SQL statement applied behind the store's back."""
+    p = MapStore.write(path, _snapshot())
     con = sqlite3.connect(p)
-    con.execute("DELETE FROM keyframes WHERE id = 3")
+    con.execute(sql)
     con.commit()
     con.close()
+    return p
+
+
+def test_rows_that_disagree_with_the_recorded_counts_are_caught(tmp_path):
+    p = _tampered(tmp_path / "m.db", "DELETE FROM keyframes WHERE id = 3")
     with pytest.raises(MapFormatError, match="m.db: corrupt slam2d map .rows"):
         MapStore.read(p)
 
 
 def test_a_metadata_value_that_is_not_json_names_the_file(tmp_path):
-    p = MapStore.write(tmp_path / "m.db", _snapshot())
-    con = sqlite3.connect(p)
-    con.execute("UPDATE meta SET value = '{bad' WHERE key = 'counts'")
-    con.commit()
-    con.close()
+    p = _tampered(tmp_path / "m.db", "UPDATE meta SET value = '{bad' WHERE key = 'counts'")
     with pytest.raises(MapFormatError, match=r"m\.db: corrupt slam2d map \(a metadata value is not JSON: "):
         MapStore.info(p)
 
