@@ -63,8 +63,7 @@ def check_output(path: PathLike, what: str = "output") -> Path:
         raise PermissionError(errno.EACCES, f"directory {parent} is not writable", f"{what} {p}")
     if parent == p.parent:  # it exists: try a file there (root passes os.access where writes fail: /proc, read-only
         try:  # mounts), so that the error comes before the work, naming the option
-            with tempfile.TemporaryFile(dir=parent):
-                pass
+            tempfile.TemporaryFile(dir=parent).close()
         except OSError as e:
             raise PermissionError(e.errno or errno.EACCES, f"cannot create a file in {parent} ({e.strerror})",
                                   f"{what} {p}") from None
