@@ -1,4 +1,4 @@
-"""Lidar scan features: line segments by split-and-merge, and corners where neighbouring segments meet.
+"""Lidar scan features: beam endpoints, line segments by split-and-merge, and corners where neighbouring segments meet.
 
 Split-and-merge (Nguyen et al. 2005 compare it with other line extractors): the scan's points, in beam order, are
 first cut into runs at no-return beams and at jumps larger than ``max_gap_m``. A run is split at the point farthest
@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from slam2d.config import check_positive
+from slam2d.log import Scan
 
 Array = NDArray[np.float64]
 
@@ -194,3 +195,11 @@ def corner_observations(corners: ArrayLike) -> Array:
     """Corners (C,2) in the scan frame as [range, bearing] observations (C,2) for landmark back ends."""
     c = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
     return np.stack([np.hypot(c[:, 0], c[:, 1]), np.arctan2(c[:, 1], c[:, 0])], axis=-1)
+
+
+def scan_points(scan: Scan, min_range: float, max_range: float) -> Array:
+    """Endpoints (K,2) in the scan frame of beams that hit within [min_range, min(max_range, scan max)) m."""
+    r = np.asarray(scan.ranges_m, dtype=np.float64)
+    a = np.asarray(scan.angles_rad, dtype=np.float64)
+    ok = np.isfinite(r) & (r > min_range) & (r < min(max_range, scan.max_range_m))
+    return np.stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])], axis=-1)

@@ -69,6 +69,9 @@ class IncrementalPoseGraph:
         # the whole-graph optimiser of the last full solve, kept while no pose or edge is added: the solves that
         # follow a loop, one per scan, then reuse its symbolic analysis and factorisation ordering
         self._full: tuple[tuple[int, int, OptimizerConfig], Optimizer] | None = None
+        # the optimiser whose solver holds the factorisation of the whole graph as it is now (a Gauss-Newton full
+        # solve since which nothing was added): :meth:`newest_covariance` reads it
+        self._factored: Optimizer | None = None
 
     @property
     def poses(self) -> Array:
@@ -92,6 +95,7 @@ class IncrementalPoseGraph:
         if np.any(np.maximum(i, j) != t) or np.any(np.minimum(i, j) >= t) or np.any(np.minimum(i, j) < 0):
             raise ValueError(f"step {t}: every edge must join pose {t} to an existing older pose")
         self._grow()
+        self._factored = None
         odo = np.flatnonzero((i == t - 1) & (j == t))
         prev = self._poses[t - 1]
         self._poses[t] = se2.compose(prev, z[odo[0]]) if odo.size else prev
@@ -116,6 +120,7 @@ class IncrementalPoseGraph:
         if not (0 <= i < j <= t):
             raise ValueError(f"add_loop: need 0 <= i < j <= {t} (got {i}, {j})")
         self._grow()
+        self._factored = None
         e = self.num_edges
         self._ei[e], self._ej[e], self._z[e], self._info[e] = i, j, z, information
         self._adj[i].append(e)
@@ -165,7 +170,24 @@ class IncrementalPoseGraph:
         out, summary = self._full[1].optimize(Values(np.arange(n), self.poses))
         self._poses[:n] = out.poses
         self.full_solves += 1
+        self._factored = self._full[1] if cfg.method == "gn" else None  # LM's factor holds its damping
         return summary
+
+    def newest_covariance(self) -> Array | None:
+        """Marginal covariance (3,3) of the newest pose, the first one held (the optimiser's gauge), from the
+        factorisation of the last whole-graph Gauss-Newton solve while nothing was added since (else None): the
+        Hessian at that solve's last linearisation point, three triangular solve pairs and no factorisation."""
+        opt = self._factored
+        if opt is None or opt.analysis is None or opt.solver is None:
+            return None
+        an = opt.analysis
+        cols, _ = an.variable_slices([self.num_poses - 1])
+        if np.any(cols < 0):  # the newest pose is the held one
+            return np.zeros((3, 3))
+        unit = np.zeros((an.n, 3))
+        unit[cols, np.arange(3)] = 1.0
+        x = np.asarray(opt.solver.solve(unit)).reshape(an.n, 3)[cols]
+        return 0.5 * (x + x.T)
 
     def solve_full(self, iterations: int) -> Summary:
         """Gauss-Newton on the whole graph (``iterations`` at most), from the current estimate."""

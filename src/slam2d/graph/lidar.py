@@ -13,13 +13,13 @@ Per step (one scan):
    least ``loop_min_separation`` keyframes older) are queued as candidates; each scan runs
    ``loop_verify_per_scan`` verification stages (more while the next one is predicted to end under
    ``loop_budget_ms`` of CPU), against a local map around the old keyframe: correlative matching over a window
-   (:mod:`slam2d.frontend.correlative`; a high score and no competing alignment nearly as good: parallel identical
-   aisles, corridor axes; with ``loop_retry_window_m`` set, a search that matched nothing with its best try at the
-   window's edge runs again over that window as a candidate of its own, where only rival peaks count), ICP
-   refinement; a loop in a self-similar place (ambiguity above ``loop_static_ambiguity``) is verified again on
-   static structure only, the points no other keyframe contradicts (:mod:`slam2d.graph.lidar_loops`: a moving
-   forklift can break an aisle's tie); a verified loop is accepted once a second one agrees with it; its decision
-   enters the graph a fixed ``loop_queue`` scans after queueing (results independent of the schedule);
+   (:mod:`slam2d.frontend.correlative`; a high score and no rival alignment nearly as good: identical aisles,
+   corridor axes; ``loop_retry_window_m``: a search that matched nothing, its best try at the window's edge, runs
+   again over that window as a candidate of its own, only rival peaks counting), ICP refinement; a loop in a
+   self-similar place (ambiguity above ``loop_static_ambiguity``) is verified again on static structure only, the
+   points no other keyframe contradicts (:mod:`slam2d.graph.lidar_loops`: a moving forklift can break an aisle's
+   tie); a verified loop is accepted once a second one agrees with it; its decision enters the graph a fixed
+   ``loop_queue`` scans after queueing (results independent of the schedule);
 4. the keyframe and its edges enter :class:`~slam2d.graph.incremental.IncrementalPoseGraph`: a local solve when a
    loop enters, then ``loop_full_iterations`` whole-graph Gauss-Newton iterations, one per scan, one every
    ``graph.full_every`` keyframes, the whole graph to convergence in ``finalize`` (bounded work per scan).
@@ -28,7 +28,8 @@ Floor markers (when steps carry readings): marker nodes in the graph, each readi
 marker read again long after a loop-like solve (:mod:`slam2d.graph.lidar_markers`).
 
 Every scan's pose is its keyframe's estimate composed with its tracked pose relative to that keyframe, so the whole
-trajectory follows the graph. Steps without a scan are placed by odometry.
+trajectory follows the graph, and its ``pose_cov`` is its marginal there (:mod:`~slam2d.graph.lidar_covariance`).
+Steps without a scan are placed by odometry.
 
 **Lifelong mode** (``layers`` set, ``--estimator lidar-lifelong``): every scan is localised against the static layer
 of :mod:`slam2d.maps.layers`, keyframes are culled by coverage, loop closure is off (:mod:`slam2d.graph.lidar_lifelong`
@@ -47,10 +48,12 @@ from numpy.typing import NDArray
 from slam2d.estimator import Diagnostics, Estimate, EstimatorLifecycle, LoopEvent
 from slam2d.frontend.correlative import run_stages
 from slam2d.frontend.icp import ICPTarget, prepare_target
+from slam2d.frontend.scan import scan_points
 from slam2d.geometry import se2
 from slam2d.graph import lidar_loops
 from slam2d.graph.incremental import IncrementalPoseGraph
 from slam2d.graph.lidar_config import LidarSLAMConfig, LifelongLidarConfig
+from slam2d.graph.lidar_covariance import PoseCovariance
 from slam2d.graph.lidar_lifelong import LifelongMarkers, MarkerSurvey
 from slam2d.graph.lidar_loops import LoopCheck, enqueue, static_stages, verify_loop_stages, wants_retry
 from slam2d.graph.lidar_markers import KeyframeMarkers, MarkerPoseGraph
@@ -64,14 +67,6 @@ __all__ = ["LidarSLAM", "LidarSLAMConfig", "LifelongLidarConfig", "scan_points"]
 Array = NDArray[np.float64]
 
 
-def scan_points(scan: Scan, min_range: float, max_range: float) -> Array:
-    """Endpoints (K,2) in the scan frame of beams that hit within [min_range, min(max_range, scan max)) m."""
-    r = np.asarray(scan.ranges_m, dtype=np.float64)
-    a = np.asarray(scan.angles_rad, dtype=np.float64)
-    ok = np.isfinite(r) & (r > min_range) & (r < min(max_range, scan.max_range_m))
-    return np.stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])], axis=-1)
-
-
 class LidarSLAM(EstimatorLifecycle):
     """The lidar SLAM back end (see the module docstring)."""
 
@@ -83,7 +78,8 @@ class LidarSLAM(EstimatorLifecycle):
     def reset(self, initial_pose: Array, *, rng: np.random.Generator) -> None:
         self._lifecycle_reset()
         self._pose = np.asarray(initial_pose, dtype=np.float64).copy()
-        self._cov = np.zeros((3, 3))
+        self._cov, self._index = np.zeros((3, 3)), -1  # the last scan match's covariance (world); last step index
+        self._pose_cov_of = PoseCovariance(self.config.min_sigma_xy_m, self.config.min_sigma_theta_rad)
         self._motion = np.zeros(3)  # the last tracked motion (scan to scan): the steady guess repeats it
         self.graph: IncrementalPoseGraph | None = None  # created with the first keyframe
         self._kf_step: list[int] = []  # step index of each keyframe
@@ -94,9 +90,8 @@ class LidarSLAM(EstimatorLifecycle):
         self._owner = [-1]  # per pose (step 0..t): its keyframe (-1: none yet, ``_rel`` is then the world pose)
         self._rel = [self._pose.copy()]
         self._target: ICPTarget | None = None
-        self._target_version = -1
         self._target_poses, self._target_span = np.zeros((0, 3)), (0, 0)  # the keyframes the target was made for
-        self._version = 0  # bumped whenever keyframe estimates change
+        self._version, self._target_version = 0, -1  # bumped whenever keyframe estimates change; the target's
         self._traj_cache: tuple[int, Array] | None = None
         self._new_loops: tuple[LoopEvent, ...] = ()
         # verified loops of the last ``loop_pair_keyframes`` keyframes: (old kf, new kf, T, information, accepted)
@@ -109,19 +104,15 @@ class LidarSLAM(EstimatorLifecycle):
         self._next_stage, self._stage_costs = "grid", lidar_loops.StageCosts()  # next stage's kind; costs by kind
         self._decided: deque[tuple[int, list[LoopEvent], list[tuple[int, int, Array, Array]]]] = deque()
         self._full_pending, self._started = 0, 0.0  # whole-graph GN iterations owed after a loop; step's start
-        self.loops_dropped = 0  # candidates refused because loop_queue were in flight
-        self.loops_retried = 0  # candidates searched again over loop_retry_window_m
+        self.loops_dropped = self.loops_retried = 0  # candidates refused (loop_queue in flight), searched again wider
         self._live: deque[int] = deque()  # when the candidates in flight are due
-        self.tracking_failures = 0
-        self.rematches = 0  # tracking matches replaced by a correlative re-match (graph/lidar_tracking.py)
-        self.loops_accepted = self.loops_rejected = 0
-        self.steps = 0
+        self.tracking_failures = self.rematches = 0  # rematches: replaced by a correlative re-match (lidar_tracking)
+        self.loops_accepted = self.loops_rejected = self.steps = 0
         self.layers = None if self.config.layers is None else MapLayers(self.config.layers)
         self._poses = PoseBuffer()  # lifelong mode: every pose (the keyframes never move there)
         self._poses.append(self._pose)
-        self._kf_xy = np.zeros((0, 2))
         self._labels: tuple[Array, NDArray[np.int8]] = (np.zeros((0, 2)), np.zeros(0, np.int8))
-        self.dynamic_points_total = 0
+        self._kf_xy, self.dynamic_points_total = np.zeros((0, 2)), 0
         self.markers = KeyframeMarkers(self.config.markers)  # floor markers (graph/lidar_markers.py)
         c = self.config
         self._lifelong_markers = None if not (c.surveyed_markers or c.map_unsurveyed_markers) else LifelongMarkers(
@@ -141,6 +132,7 @@ class LidarSLAM(EstimatorLifecycle):
     def step(self, step: Step) -> None:
         self._check_step()
         self._started = time.thread_time()  # the loop work's budget counts from here (loop_budget_ms)
+        self._index = step.index
         self._step_scan(step)
         if step.markers is not None and self.config.markers.enabled and self.layers is None \
                 and isinstance(self.graph, MarkerPoseGraph) \
@@ -226,9 +218,8 @@ class LidarSLAM(EstimatorLifecycle):
             self.graph = MarkerPoseGraph(pose, cfg.graph)
         else:
             prev = self.graph.poses[-1]
-            floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
-            info = np.asarray(np.linalg.inv(se2.covariance_in_frame(cov, float(prev[2])) + floor), np.float64)
-            self.graph.add_step(k, np.array([k - 1]), np.array([k]), se2.between(prev, pose)[None], info[None])
+            info = np.asarray(np.linalg.inv(self._pose_cov_of.edge(prev, cov)[None]), np.float64)
+            self.graph.add_step(k, np.array([k - 1]), np.array([k]), se2.between(prev, pose)[None], info)
         assert scan is not None
         self._kf_step.append(index)
         self._kf_points.append(pts)
@@ -259,6 +250,14 @@ class LidarSLAM(EstimatorLifecycle):
                           marker_fixes=0 if self._lifelong_markers is None else self._lifelong_markers.fixes,
                           markers_mapped=0 if self._lifelong_markers is None else self._lifelong_markers.mapped)
 
+    def _pose_cov(self) -> Array:
+        """The pose's marginal in the graph (:mod:`~slam2d.graph.lidar_covariance`); lifelong mode and poses before
+        the first keyframe: the last scan match's covariance."""
+        if self.layers is not None or self.graph is None or self._owner[-1] < 0:
+            return self._cov.copy()
+        k = self._owner[-1]
+        return self._pose_cov_of.at(self.graph.poses[k], self._rel[-1], self._cov, self._kf_step[k] == self._index)
+
     def _place(self, index: int, pose: Array) -> None:
         """A non-keyframe pose: stored relative to the newest keyframe."""
         self._pose = pose
@@ -282,10 +281,11 @@ class LidarSLAM(EstimatorLifecycle):
             self._pose = pose
             return
         prev = self.graph.poses[-1]
-        floor = np.diag([cfg.min_sigma_xy_m**2, cfg.min_sigma_xy_m**2, cfg.min_sigma_theta_rad**2])
-        info = np.asarray(np.linalg.inv(se2.covariance_in_frame(cov, float(prev[2])) + floor), dtype=np.float64)
+        edge_cov = self._pose_cov_of.edge(prev, cov)
+        info = np.asarray(np.linalg.inv(edge_cov[None]), np.float64)
         before = self.graph.local_solves, self.graph.full_solves
-        self.graph.add_step(k, np.array([k - 1]), np.array([k]), np.asarray(z)[None], info[None])
+        self.graph.add_step(k, np.array([k - 1]), np.array([k]), np.asarray(z)[None], info)
+        self._pose_cov_of.keyframe_added(prev, np.asarray(z), edge_cov, self.graph.newest_covariance())
         if (self.graph.local_solves, self.graph.full_solves) != before:
             self._version += 1
         self._pose = self.graph.poses[-1].copy()
@@ -319,6 +319,9 @@ class LidarSLAM(EstimatorLifecycle):
             # converged (the step changed the cost too little): the rest of the owed iterations are not needed
             self._full_pending = 0 if summary.termination != "max iterations" else self._full_pending - 1
             moved = True
+            exact = self.graph.newest_covariance() if not self._full_pending else None  # once the loop is in
+            if exact is not None:
+                self._pose_cov_of.keyframe = exact
         # due decisions enter first, so that the budget below counts their graph update (7-13 ms a scan on fr079)
         events, entered = self._enter_due(flush)
         done, budget = 0, self.config.loop_budget_ms  # verification stages run in this scan, CPU budget (ms)
@@ -496,7 +499,7 @@ class LidarSLAM(EstimatorLifecycle):
         self._check_ready()
         return Estimate(
             pose=self._pose.copy(),
-            pose_cov=self._cov.copy(),
+            pose_cov=self._pose_cov(),
             trajectory=self.trajectory().copy() if self._finalized else None,
             new_loops=self._new_loops,
             diagnostics=Diagnostics(optimizations=0 if self.graph is None else self.graph.local_solves
@@ -592,5 +595,6 @@ class LidarSLAM(EstimatorLifecycle):
         # the saved keyframes were not driven in this run, and relocalising tied this one to them like a loop
         self._driven_m, self._last_loop_kf = [0.0] * (n + 1), n
         self._owner[0], self._rel[0] = n, np.zeros(3)
+        self._pose_cov_of.keyframe = np.asarray(np.linalg.inv(information), np.float64)  # relocalised, map frame
         self._pose = self.graph.poses[-1].copy()
         self._version += 1

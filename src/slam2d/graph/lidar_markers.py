@@ -98,6 +98,7 @@ class MarkerPoseGraph(IncrementalPoseGraph):
         marker starts at the keyframe's estimate composed with its reading. No solve here."""
         if not 0 <= pose < self.num_poses:
             raise ValueError(f"add_marker_observations: keyframe {pose} does not exist ({self.num_poses} keyframes)")
+        self._factored = None  # marker factors are not in the last full solve's factorisation
         for mid, zk, ik in zip(np.asarray(ids, np.int64).tolist(), np.asarray(z, np.float64).reshape(-1, 2),
                                np.asarray(information, np.float64).reshape(-1, 2, 2), strict=True):
             s = self._slot.get(mid)

@@ -1,0 +1,58 @@
+"""The lidar estimator's ``pose_cov``: the pose's marginal covariance in its pose graph, at bounded cost per scan.
+
+A scan match's own covariance (ICP's ``sigma^2 (J^T J)^-1``) is the pose's uncertainty relative to the local map, a
+few millimetres: reported as the pose's covariance it made the estimator's NEES run three orders of magnitude above
+the chi-square band. The pose's uncertainty in the world is the graph's marginal, which grows along the keyframe
+chain and shrinks when a loop enters. Kept here without a whole-graph factorisation per scan:
+
+* the newest keyframe's marginal is exact after each whole-graph Gauss-Newton solve (read from that solve's
+  factorisation, :meth:`slam2d.graph.incremental.IncrementalPoseGraph.newest_covariance`), and carried along each
+  new keyframe edge in between: the linearised chain, which for a graph without loops equals its marginal;
+* each scan's pose is the newest keyframe composed with the tracked relative pose, carried the same way with the
+  covariance an edge to it would get.
+
+Shapes: poses (3,), covariances (3,3).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from slam2d.geometry import se2
+
+Array = NDArray[np.float64]
+
+
+class PoseCovariance:
+    """The newest keyframe's marginal (``keyframe``, world frame) and what the scans after it get from it."""
+
+    def __init__(self, floor_xy_m: float, floor_theta_rad: float) -> None:
+        self.floor = np.diag([floor_xy_m**2, floor_xy_m**2, floor_theta_rad**2])
+        self.keyframe = np.zeros((3, 3))  # the first keyframe is the gauge: held, zero covariance
+
+    def edge(self, prev: Array, match_cov: Array) -> Array:
+        """The covariance of a relative pose from keyframe pose ``prev`` measured by a scan match of world-frame
+        covariance ``match_cov``: turned into ``prev``'s frame and floored (ICP's covariance misses wrong matches
+        and the map's discretisation). Every keyframe edge's information is its inverse."""
+        return se2.covariance_in_frame(match_cov, float(prev[2])) + self.floor
+
+    def carried(self, kf: Array, rel: Array, rel_cov: Array) -> Array:
+        """The newest keyframe's marginal carried to ``compose(kf, rel)`` through a ``between`` factor of covariance
+        ``rel_cov``, whose translation error lies in its END pose's frame (:func:`slam2d.graph.factors.eval_between`):
+        the graph's own linearisation, so a chain of these equals the chain's marginal."""
+        ja, _ = se2.compose_jacobians(kf, rel)
+        c, s = np.cos(kf[2] + rel[2]), np.sin(kf[2] + rel[2])
+        turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        out = ja @ self.keyframe @ ja.T + turn @ rel_cov @ turn.T
+        return np.asarray(0.5 * (out + out.T), dtype=np.float64)
+
+    def keyframe_added(self, prev: Array, z: Array, edge_cov: Array, exact: Array | None) -> None:
+        """A keyframe joined to the previous one (at ``prev``) by the edge ``z`` of covariance ``edge_cov``;
+        ``exact``: its marginal when the graph was just solved whole (None: carried)."""
+        self.keyframe = self.carried(prev, z, edge_cov) if exact is None else exact
+
+    def at(self, kf: Array, rel: Array, match_cov: Array, is_keyframe: bool) -> Array:
+        """``pose_cov`` of the scan at ``rel`` from the newest keyframe (at ``kf``), tracked with ``match_cov``
+        (``is_keyframe``: the scan is that keyframe)."""
+        return self.keyframe.copy() if is_keyframe else self.carried(kf, rel, self.edge(kf, match_cov))
