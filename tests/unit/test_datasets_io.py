@@ -390,11 +390,24 @@ def test_registry_and_cli_on_synthetic_folders(tmp_path: Path, capsys, monkeypat
     out = capsys.readouterr().out
     assert str(root) in out and "partial" in out and "plaza1" in out
     assert load_dataset("MRCLAM", robot=1, max_steps=10).num_steps == 10
+    (root / "radish-laser-logs").mkdir()
+    (root / "radish-laser-logs" / "intel.clf.bz2").write_bytes(b"")
+    (root / "graphs").mkdir()
+    (root / "graphs" / "tiny.g2o").write_text("VERTEX_SE2 0 0 0 0\n")
+    (root / "graphs" / "notes.txt").write_text("not a graph\n")
+    listing = tmp_path / "datasets.json"
+    assert main(["datasets", "--json", str(listing)]) == 0
+    out = capsys.readouterr().out
+    assert "relations file missing" in out and "graphs/tiny.g2o" in out and "notes.txt" not in out
+    import json
+
+    rows = {r["dataset"]: r for r in json.loads(listing.read_text())["datasets"]}
+    assert rows["intel"]["present"] == "yes" and rows["intel"]["missing"] == ["intel.relations"]
+    assert rows["aces"]["present"] == "no"
+    assert json.loads(listing.read_text())["pose_graphs"] == [str(root / "graphs" / "tiny.g2o")]
     out_json = tmp_path / "r.json"
     assert main(["run", "--dataset", "mrclam", "--dataset-path", str(tmp_path / "MRCLAM_Dataset3"), "--robot", "2",
                  "--json", str(out_json)]) == 0
-    import json
-
     rec = json.loads(out_json.read_text())
     assert rec["scenario"] == "mrclam" and rec["robot"] == 2 and rec["ate_rmse_m"] < 0.01
     assert main(["run", "--dataset", "plaza1", "--robot", "2"]) == 2
