@@ -35,6 +35,8 @@ def cmd(args: argparse.Namespace) -> int:
     check_number("--seed", args.seed, low=0, high=2**63 - 1)
     check_number("--survey-sigma", args.survey_sigma, low=0)
     check_outputs(args, [], [("--out", args.out), ("--marker-survey", args.marker_survey)])
+    if not args.out.lower().endswith(".npz"):  # a .txt name would hold a binary archive
+        raise ValueError(f"--out {args.out}: the log is written as a NumPy .npz archive; give a name ending in .npz")
     cfg = with_overrides(ScenarioConfig(name=args.scenario), overrides_from(args))
     log = simulate(cfg, args.seed)
     if args.marker_survey and (log.true_markers is None or not len(log.true_markers)):
