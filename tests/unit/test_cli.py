@@ -114,3 +114,11 @@ def test_a_reader_that_goes_away_is_not_an_error(tmp_path):
         err = p.stderr.read().decode()
     assert p.wait(timeout=120) == 0, err
     assert err == ""
+
+
+def test_a_library_warning_is_one_line_naming_the_command(tmp_path, capsys):
+    graph = tmp_path / "g.g2o"
+    graph.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nFOO 1\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n")
+    assert main(["optimize", str(graph), "--out", str(tmp_path / "o.g2o")]) == 0
+    err = capsys.readouterr().err
+    assert err == f"slam2d optimize: warning: {graph}: skipped lines with unknown tags: FOO x1\n"

@@ -164,6 +164,23 @@ def test_optimizer_decreases_and_gn_lm_agree_on_random_graph():
     assert set(by) == set(g.kinds()) | {"total"}
 
 
+def test_an_optimal_graph_stops_at_once_with_damped_methods():
+    """At zero cost every damped step is rejected: LM and dog leg stop before the first one instead of growing the
+    damping to its limit (they took 13 rejected iterations on a two-pose graph)."""
+    rng = np.random.default_rng(5)
+    g, vals = _random_graph(rng)
+    best, _ = optimize(g, vals, OptimizerConfig(method="gn", relative_decrease_tol=1e-12))
+    exact = FactorGraph()
+    ij = g.block("between").keys
+    exact.add_between(ij[0], ij[1], se2.between(best.poses[ij[0]], best.poses[ij[1]]),
+                      np.repeat(np.eye(3)[None], ij.shape[1], axis=0))
+    poses = Values(best.pose_keys, best.poses)
+    for method in ("lm", "dogleg"):
+        out, s = optimize(exact, poses, OptimizerConfig(method=method))
+        assert (s.termination, s.iterations, s.linear_solves) == ("zero cost", 0, 0)
+        np.testing.assert_array_equal(out.poses, best.poses)
+
+
 def test_marginals_equal_blocks_of_the_dense_inverse():
     rng = np.random.default_rng(2)
     g, vals = _random_graph(rng)

@@ -100,20 +100,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     args_in = list(sys.argv[1:] if argv is None else argv)
     debug = _debug_requested(args_in)
     args_in = [a for a in args_in if a != "--debug"]
-    command = "?"
-    if not debug:
-        # numeric warnings are noise next to the one-line error: divergence is checked and reported as an error
-        warnings.simplefilter("ignore", RuntimeWarning)
+    command = ["?"]
+    with warnings.catch_warnings():
+        if not debug:
+            # numeric warnings are noise next to the one-line error: divergence is checked and reported as an error
+            warnings.simplefilter("ignore", RuntimeWarning)
+            # the library's own warnings (a file's skipped lines, ...) as one line each, without Python's source echo
+            warnings.simplefilter("default", UserWarning)
+            warnings.showwarning = lambda message, *_, **__: print(
+                f"slam2d {command[0]}: warning: {_one_line(str(message))}", file=sys.stderr)
+        return _run(args_in, command, debug)
+
+
+def _run(args_in: list[str], command: list[str], debug: bool) -> int:
     try:
         parser = build_parser()
         args = parser.parse_args(args_in)
-        command = str(args.command)
+        command[0] = str(args.command)
         if not getattr(args, "func", None):
             parser.print_help()
             return EXIT_USER
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
-        print(f"slam2d {command}: interrupted", file=sys.stderr)
+        print(f"slam2d {command[0]}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     except BrokenPipeError:  # the reader went away (``slam2d datasets | head``): not an error of ours or theirs
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error when Python flushes at exit
@@ -125,10 +134,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         msg = describe(e)
         if msg is None:
-            print(f"slam2d {command}: internal error: {_one_line(f'{type(e).__name__}: {e}')} "
+            print(f"slam2d {command[0]}: internal error: {_one_line(f'{type(e).__name__}: {e}')} "
                   "(a bug; --debug shows the stack)", file=sys.stderr)
             return EXIT_BUG
-        print(f"slam2d {command}: error: {_one_line(msg)}", file=sys.stderr)
+        print(f"slam2d {command[0]}: error: {_one_line(msg)}", file=sys.stderr)
         return EXIT_USER
 
 

@@ -199,7 +199,9 @@ class Optimizer:
         termination = "max iterations"
         if an.n == 0:
             termination = "no free variables"
-        while an.n and it < cfg.max_iterations:
+        elif cfg.method != "gn" and cost <= cfg.absolute_decrease_tol:
+            termination = "zero cost"  # already optimal: every damped step would be rejected until lambda_max
+        while an.n and termination == "max iterations" and it < cfg.max_iterations:
             it += 1
             if cfg.method == "dogleg":
                 if fresh:  # new linearisation point: one factorisation gives the GN step for every radius tried
