@@ -166,7 +166,8 @@ def test_the_commands_name_every_counted_problem(tmp_path: Path, command: str,
     from slam2d.cli.main import main
 
     lines = [*good_lines(), flaser([float("nan"), float("inf"), -1.0, 4.1], (0.2, 0.0, 0.1), 1.25),
-             flaser([81.83] * 4, (0.3, 0, 0.15), 1.35), flaser([1.2, 2.2, 3.2, 4.2], (0.4, 0, 0.2), 1.20)]
+             flaser([81.83] * 4, (0.3, 0, 0.15), 1.35), flaser([1.2, 2.2, 3.2, 4.2], (0.4, 0, 0.2), 1.20),
+             "TRUEPOS 1 2 3 4 5 6 1.4 h 1"]
     log = write(tmp_path, lines)
     (tmp_path / "log.relations").write_text("1.05 1.15 0.1 0 0 0 0 0.05\n1.05 9.99 0.1 0 0 0 0 0.05\n")
     out = tmp_path / "r.json"
@@ -178,8 +179,10 @@ def test_the_commands_name_every_counted_problem(tmp_path: Path, command: str,
     assert f"timestamp goes backwards, kept in file order: 1; first: {log}:9:" in err
     assert "1 of 2 relations name stamps the estimate has no pose for, left out; first: " \
            f"{tmp_path / 'log.relations'}:2: stamp 9.990000" in err
+    assert "record types this reader does not use, ignored: TRUEPOS x1" in err
     rec = json.loads(out.read_text())
     assert (rec["log_invalid_beams"], rec["log_skipped_lines"], rec["log_backwards_stamps"]) == (3, 1, 1)
+    assert rec["log_unknown_records"] == {"TRUEPOS": 1}
     assert (rec["relations"], rec["relations_used"]) == (2, 1)
 
 

@@ -54,16 +54,21 @@ _LOG_PROBLEMS = (("skipped_lines", "lines skipped (malformed, or a scan with no 
                  ("backwards_stamps", "scans whose timestamp goes backwards, kept in file order"))
 
 
-def report_log_problems(log: Log) -> dict[str, int]:
-    """Print one note per kind of problem the CARMEN reader counted (with its first file:line) to stderr; returns
-    the counts for the result record: a skip is counted and named, never silent."""
+def report_log_problems(log: Log) -> dict[str, Any]:
+    """Print one note per kind of problem the CARMEN reader counted (with its first file:line), and one for record
+    types it does not use, to stderr; returns the counts for the result record: a skip is counted and named, never
+    silent."""
     examples = log.metadata.get("problem_examples", {})
-    counts = {}
+    counts: dict[str, Any] = {}
     for key, what in _LOG_PROBLEMS:
         counts[f"log_{key}"] = n = int(log.metadata.get(key, 0))
         if n:
             first = examples.get(key) or [""]
             print(f"slam2d: note: {what}: {n}; first: {first[0]}", file=sys.stderr)
+    counts["log_unknown_records"] = unknown = dict(log.metadata.get("unknown_records", {}))
+    if unknown:
+        kinds = ", ".join(f"{k} x{v}" for k, v in sorted(unknown.items()))
+        print(f"slam2d: note: record types this reader does not use, ignored: {kinds}", file=sys.stderr)
     return counts
 
 

@@ -141,7 +141,7 @@ class CarmenLog:
                       "stamps_original_s": [float(v) for v in self.stamps_s],
                       "initial_odometry_pose": [float(v) for v in self.poses[0]],
                       "skipped_lines": len(self.problems), "invalid_beams": self.invalid_beams,
-                      "backwards_stamps": len(self.backwards_stamps),
+                      "backwards_stamps": len(self.backwards_stamps), "unknown_records": dict(self.unknown),
                       # the first few file:line messages of each kind, for a caller to show (bounded: a broken
                       # file can have a million)
                       "problem_examples": {"skipped_lines": list(self.problems[:3]),
