@@ -177,11 +177,14 @@ def resolve_key(cls: type, key: str) -> str | None:
 def with_overrides(cfg: C, overrides: Mapping[str, Any]) -> C:
     """Return ``cfg`` with dotted/leaf-name overrides applied and validated (a new object)."""
     data = to_dict(cfg)
+    refuse = getattr(cfg, "refuse_override", None)  # a config may refuse a field before nested values are checked
     for key, value in overrides.items():
         path = resolve_key(type(cfg), key)
         if path is None:
             valid = sorted(leaf_paths(type(cfg)))
             raise ValueError(f"unknown key {key!r} for {type(cfg).__name__}; valid keys: {valid}")
+        if refuse is not None and (why := refuse(path)):
+            raise ValueError(why)
         node = data
         parts = path.split(".")
         for i, p in enumerate(parts[:-1]):

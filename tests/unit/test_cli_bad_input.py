@@ -59,6 +59,7 @@ CASES: list[tuple[str, str, str]] = [
     ("simulate", "simulate --out {d}/s.npz --set steps=1e300", "steps"),
     ("simulate", "simulate --out {d}/s.npz --set steps=100000000", "SLAM2D_MAX_MEMORY_MB"),
     ("simulate", "simulate --out {d}/s.txt", "ending in .npz"),
+    ("simulate", "simulate --out {d}/s.npz --set warehouse.aisles=3", "cannot be set for scenario 'room'"),
     ("simulate", "simulate --out {d}/s.npz --set sensor.clutter_rate=1e9", "clutter_rate"),
     ("simulate", "simulate --out {d}/s.npz --set sensor.clutter_rate=inf", "clutter_rate"),
     ("simulate", "simulate --out {d}/s.npz --set sensor.clutter_rate=-1", "clutter_rate"),

@@ -83,17 +83,30 @@ class ScenarioConfig:
         check_nonnegative(self, "gps_every")
         spec = SCENARIOS[self.name]
         for n in ("landmarks", "moving_objects"):
-            if getattr(self, n) is not None and n not in spec.defaults:
-                raise ValueError(f"ScenarioConfig.{n} cannot be set for scenario {self.name!r}")
+            if getattr(self, n) is not None and (why := self.refuse_override(n)):
+                raise ValueError(why)
         wh = self.warehouse
         if spec.floor_markers:  # only the marker fields apply to this layout
             wh = dataclasses.replace(wh, floor_markers=False, marker_spacing_m=WarehouseConfig().marker_spacing_m)
-        if wh != WarehouseConfig() and not spec.uses_warehouse:
-            raise ValueError(f"ScenarioConfig.warehouse cannot be set for scenario {self.name!r} (only for "
-                             f"{sorted(k for k, s in SCENARIOS.items() if s.uses_warehouse)})")
+        if wh != WarehouseConfig() and (why := self.refuse_override("warehouse")):
+            raise ValueError(why)
         if spec.check is not None:
             spec.check(self)
         check_memory(self)
+
+    def refuse_override(self, path: str) -> str | None:
+        """Why the field ``path`` (dotted) cannot be set for this scenario, or None. Asked by
+        :func:`slam2d.config.with_overrides` before the nested configs check their values, so a warehouse value given
+        to the room is refused as such, not for a layout it does not make."""
+        spec = SCENARIOS[self.name]
+        top, _, leaf = path.partition(".")
+        if top in ("landmarks", "moving_objects") and top not in spec.defaults:
+            return f"ScenarioConfig.{top} cannot be set for scenario {self.name!r}"
+        if top == "warehouse" and not spec.uses_warehouse \
+                and not (spec.floor_markers and leaf in ("floor_markers", "marker_spacing_m")):
+            return (f"ScenarioConfig.warehouse cannot be set for scenario {self.name!r} (only for "
+                    f"{sorted(k for k, s in SCENARIOS.items() if s.uses_warehouse)})")
+        return None
 
     def resolved(self) -> ScenarioConfig:
         """This config with every ``None`` replaced by the scenario's default."""
