@@ -16,6 +16,8 @@ Shapes: poses (3,), covariances (3,3).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -40,11 +42,19 @@ class PoseCovariance:
     def carried(self, kf: Array, rel: Array, rel_cov: Array) -> Array:
         """The newest keyframe's marginal carried to ``compose(kf, rel)`` through a ``between`` factor of covariance
         ``rel_cov``, whose translation error lies in its END pose's frame (:func:`slam2d.graph.factors.eval_between`):
-        the graph's own linearisation, so a chain of these equals the chain's marginal."""
-        ja, _ = se2.compose_jacobians(kf, rel)
-        c, s = np.cos(kf[2] + rel[2]), np.sin(kf[2] + rel[2])
+        the graph's own linearisation, so a chain of these equals the chain's marginal. Written out for one pose
+        (:func:`slam2d.geometry.se2.compose_jacobians` is batched: ten times the cost, once a scan)."""
+        c, s = math.cos(kf[2]), math.sin(kf[2])
+        x, y = float(rel[0]), float(rel[1])
+        ja = np.array([[1.0, 0.0, -s * x - c * y], [0.0, 1.0, c * x - s * y], [0.0, 0.0, 1.0]])
+        return self._plus(ja @ self.keyframe @ ja.T, rel_cov, kf[2] + rel[2])
+
+    @staticmethod
+    def _plus(base: Array, cov: Array, theta: float) -> Array:
+        """``base + J cov J^T`` with ``J`` the rotation by ``theta`` (on x, y), symmetrised."""
+        c, s = math.cos(theta), math.sin(theta)
         turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        out = ja @ self.keyframe @ ja.T + turn @ rel_cov @ turn.T
+        out = base + turn @ cov @ turn.T
         return np.asarray(0.5 * (out + out.T), dtype=np.float64)
 
     def keyframe_added(self, prev: Array, z: Array, edge_cov: Array, exact: Array | None) -> None:
@@ -55,4 +65,7 @@ class PoseCovariance:
     def at(self, kf: Array, rel: Array, match_cov: Array, is_keyframe: bool) -> Array:
         """``pose_cov`` of the scan at ``rel`` from the newest keyframe (at ``kf``), tracked with ``match_cov``
         (``is_keyframe``: the scan is that keyframe)."""
-        return self.keyframe.copy() if is_keyframe else self.carried(kf, rel, self.edge(kf, match_cov))
+        if is_keyframe:
+            return self.keyframe.copy()
+        # edge(kf, match_cov) turned into kf's frame; here the rotation by -kf[2], written out
+        return self.carried(kf, rel, self._plus(self.floor, match_cov, -kf[2]))
