@@ -127,6 +127,13 @@ def test_a_log_without_the_back_ends_input_is_refused_not_dead_reckoned() -> Non
     for name in ("ekf", "fastslam", "graph"):
         with pytest.raises(ValueError, match=f"'{name}' needs landmark bearings; room's observations are ranges only"):
             run_named(name, log=ranges_only)
+    # a lidar log without any landmark observation (a CARMEN log): every landmark back end is refused
+    scans_only = dataclasses.replace(log, obs_step=log.obs_step[:0], obs_range_m=log.obs_range_m[:0],
+                                     obs_bearing_rad=log.obs_bearing_rad[:0], obs_id=log.obs_id[:0])
+    for name in ("ekf", "graph", "range-only-ekf", "range-only-graph"):
+        with pytest.raises(ValueError, match=f"'{name}' needs landmark observations; room is a lidar log without"):
+            run_named(name, log=scans_only)
     # the same logs serve the back ends that measure with what they have
     assert run_named("range-only-ekf", log=ranges_only)[1]["steps"] == 30
     assert run_named("lidar", log=log)[1]["steps"] == 30
+    assert run_named("dead-reckoning", log=scans_only)[1]["steps"] == 30

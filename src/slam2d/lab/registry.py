@@ -25,8 +25,9 @@ class EstimatorSpec:
     factory: Callable[[Any], Estimator]
     description: str
     needs: str = ""
-    """what the back end measures with: "scans" (lidar), "bearings" (landmark bearings) or "" (odometry alone will
-    do); a log without it is refused by the runner, rather than dead-reckoned under the estimator's name."""
+    """what the back end measures with: "scans" (lidar), "bearings" (landmark bearings), "ranges" (landmark ranges)
+    or "" (odometry alone will do); a log without it is refused by the runner, rather than dead-reckoned under the
+    estimator's name."""
 
 
 ESTIMATORS: dict[str, EstimatorSpec] = {}
@@ -69,7 +70,7 @@ _BUILTIN: dict[str, tuple[str, str, str, str]] = {
 
 #: the built-in back ends' inputs beyond odometry (:attr:`EstimatorSpec.needs`)
 _NEEDS = {"lidar": "scans", "lidar-lifelong": "scans", "ekf": "bearings", "fastslam": "bearings",
-          "fastslam2": "bearings", "graph": "bearings"}
+          "fastslam2": "bearings", "graph": "bearings", "range-only-ekf": "ranges", "range-only-graph": "ranges"}
 
 
 def _load_builtin() -> None:

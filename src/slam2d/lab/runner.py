@@ -189,6 +189,10 @@ def check_inputs(spec: EstimatorSpec, log: Log) -> None:
     if spec.needs == "bearings" and len(log.obs_bearing_rad) and not np.isfinite(log.obs_bearing_rad).any():
         raise ValueError(f"estimator {spec.name!r} needs landmark bearings; {what}'s observations are ranges only "
                          "(use range-only-ekf or range-only-graph)")
+    if spec.needs in ("bearings", "ranges") and not len(log.obs_step) and log.scan_step is not None \
+            and len(log.scan_step):
+        raise ValueError(f"estimator {spec.name!r} needs landmark observations; {what} is a lidar log without any "
+                         "(use --estimator lidar)")
 
 
 def run_named(
