@@ -30,7 +30,8 @@ def register(sub: Any) -> None:
 def cmd(args: argparse.Namespace) -> int:
     check_outputs(args, [], [("--json", args.json)])
     root, why = data_dir(args.data_dir)
-    print(f"data directory: {root}  ({why})")
+    state = "" if root.is_dir() or "absent" in why else "; missing" if not root.exists() else "; not a directory"
+    print(f"data directory: {root}  ({why}{state})")
     rows = []
     for name, info in DATASETS.items():
         folder, missing = dataset_status(name, root)
@@ -59,8 +60,16 @@ def cmd(args: argparse.Namespace) -> int:
 
 
 def _graph_files(root: Path) -> list[Path]:
-    """Pose-graph files in the data directory's folders (one level down), sorted."""
-    if not root.is_dir():
-        return []
-    return sorted(p for d in root.iterdir() if d.is_dir() for p in d.iterdir()
-                  if p.is_file() and p.suffix.lower() in _GRAPH_EXTENSIONS)
+    """Pose-graph files in the data directory's folders (one level down), sorted; a folder that cannot be read is
+    passed over (this is a listing, not a check)."""
+    found: list[Path] = []
+    try:
+        folders = [d for d in root.iterdir() if d.is_dir()] if root.is_dir() else []
+    except OSError:
+        return found
+    for d in folders:
+        try:
+            found += [p for p in d.iterdir() if p.suffix.lower() in _GRAPH_EXTENSIONS and p.is_file()]
+        except OSError:
+            continue
+    return sorted(found)
