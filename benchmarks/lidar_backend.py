@@ -141,6 +141,43 @@ def aisle_drift(overrides: dict[str, str]) -> float:
     return float(np.abs(est.graph.markers - truth).max())
 
 
+def machine_reference(calls: int = 100) -> dict[str, Any]:
+    """The machine's speed on the back end's hot call, so that timings from different machines can be compared: the
+    median CPU time of a fixed point-to-line ICP (180 points on a 1000-point room outline, exactly 10 iterations,
+    one SciPy KD-tree query each) and of one such query alone."""
+    import platform
+
+    from slam2d.frontend.icp import ICPConfig, icp, prepare_target
+    from slam2d.geometry import se2
+
+    rng = np.random.default_rng(7)
+    u = rng.uniform(0.0, 36.0, 1000)  # a 10 x 8 m rectangle's perimeter, unrolled
+    outline = np.where((u < 10)[:, None], np.c_[u, 0 * u], np.where((u < 18)[:, None], np.c_[10 + 0 * u, u - 10],
+                       np.where((u < 28)[:, None], np.c_[28 - u, 8 + 0 * u], np.c_[0 * u, 36 - u])))
+    target = outline + rng.normal(0.0, 0.01, outline.shape)
+    source = se2.transform_points(se2.inverse(np.array([0.1, -0.05, 0.03])), target[::5][:180])
+    cfg = ICPConfig(max_iterations=10, tolerance=1e-100)  # no early stop: exactly 10 iterations
+    prep = prepare_target(target, cfg)
+    assert icp(source, prep, config=cfg).iterations == 10
+
+    def cpu_ms(fn: Any) -> float:
+        times = []
+        for _ in range(calls):
+            t = time.thread_time()
+            fn()
+            times.append(time.thread_time() - t)
+        return float(np.median(times) * 1e3)
+
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            model = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), model)
+    except OSError:
+        pass  # not Linux: platform's answer stands
+    return {"cpu": model, "icp_10_iterations_ms": cpu_ms(lambda: icp(source, prep, config=cfg)),
+            "kdtree_query_ms": cpu_ms(lambda: prep.tree.query(source, distance_upper_bound=1.0))}
+
+
 #: the columns that measure the machine, not the estimator
 TIMING = ("latency_ms_p50", "latency_ms_p99", "latency_ms_max", "processing_s", "real_time_factor", "cpu_ms_p50",
           "cpu_ms_p99", "cpu_ms_max", "processing_cpu_s", "real_time_factor_cpu", "peak_rss_mb")
@@ -184,6 +221,9 @@ def main() -> None:
     if args.repeat < 1:
         ap.error("--repeat must be >= 1")
     names = [n for n in args.logs.split(",") if n]
+    records["machine"] = ref = machine_reference()
+    print(f"machine: {ref['cpu']}; reference ICP (10 iterations, 180 points on 1000) {ref['icp_10_iterations_ms']:.2f}"
+          f" ms CPU, one KD-tree query of those points {ref['kdtree_query_ms']:.3f} ms", flush=True)
     per_log: dict[str, list[dict[str, Any]]] = {n: [] for n in names}
     for _ in range(args.repeat):  # taking turns: each log's runs meet different moments of the machine
         for name in names:
