@@ -36,7 +36,10 @@ class PoseCovariance:
     def edge(self, prev: Array, match_cov: Array) -> Array:
         """The covariance of a relative pose from keyframe pose ``prev`` measured by a scan match of world-frame
         covariance ``match_cov``: turned into ``prev``'s frame and floored (ICP's covariance misses wrong matches
-        and the map's discretisation). Every keyframe edge's information is its inverse."""
+        and the map's discretisation). Every keyframe edge's information is its inverse. (Turned by ``prev``'s
+        heading, where the factor's error lies in the END pose's frame: off by the edge's own turn, at most
+        ``keyframe_angle_rad``, which only matters for an anisotropic match; kept, since every lidar result
+        depends on it.)"""
         return se2.covariance_in_frame(match_cov, float(prev[2])) + self.floor
 
     def carried(self, kf: Array, rel: Array, rel_cov: Array) -> Array:
