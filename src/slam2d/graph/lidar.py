@@ -193,22 +193,19 @@ class LidarSLAM(EstimatorLifecycle):
                 else:
                     self.tracking_failures += 1
                     cov = np.diag([0.2, 0.2, 0.05]) ** 2
-            pose, cov = self._survey_fix(step, pose, cov)  # before drawing: the layers follow the survey
+            if step.markers is not None and self._lifelong_markers is not None and cfg.markers.enabled:
+                # the pose corrected by the floor-marker readings, before drawing: the layers follow the survey
+                pose, cov = self._lifelong_markers.correct(pose, cov, step.markers.ids, step.markers.xy_m)
             labels = lay.classify(pose, pts)
             lay.integrate(pose, pts, labels, step.time_s, bootstrap=first)
             self._labels = (pts, labels)
             self.dynamic_points_total += int(np.count_nonzero(labels == DYNAMIC))
-            near = self._kf_xy - pose[:2]
-            if not len(near) or float(np.min(np.einsum("ij,ij->i", near, near))) >= cfg.coverage_m**2:
+            near = np.einsum("ij,ij->i", self._kf_xy - pose[:2], self._kf_xy - pose[:2])
+            self._pose_cov_of.in_layer(near, cov, new := not len(near) or float(near.min()) >= cfg.coverage_m**2)
+            if new:
                 self._add_coverage_keyframe(step.index, pose, pts, step.scan, cov)
         self._pose, self._cov = pose, cov
         self._poses.append(pose)
-
-    def _survey_fix(self, step: Step, pose: Array, cov: Array) -> tuple[Array, Array]:
-        """The pose corrected by the step's floor-marker readings (lifelong mode; unchanged without any)."""
-        if step.markers is None or self._lifelong_markers is None or not self.config.markers.enabled:
-            return pose, cov
-        return self._lifelong_markers.correct(pose, cov, step.markers.ids, step.markers.xy_m)
 
     def _add_coverage_keyframe(self, index: int, pose: Array, pts: Array, scan: Scan | None, cov: Array) -> None:
         """A keyframe on new ground, joined to the previous keyframe by the tracked relative pose."""
@@ -251,9 +248,11 @@ class LidarSLAM(EstimatorLifecycle):
                           markers_mapped=0 if self._lifelong_markers is None else self._lifelong_markers.mapped)
 
     def _pose_cov(self) -> Array:
-        """The pose's marginal in the graph (:mod:`~slam2d.graph.lidar_covariance`); lifelong mode and poses before
-        the first keyframe: the last scan match's covariance."""
-        if self.layers is not None or self.graph is None or self._owner[-1] < 0:
+        """The pose's marginal in the graph, in lifelong mode its uncertainty in the static layer
+        (:mod:`~slam2d.graph.lidar_covariance`); before the first keyframe, the last scan match's covariance."""
+        if self.layers is not None:
+            return self._pose_cov_of.current.copy()
+        if self.graph is None or self._owner[-1] < 0:
             return self._cov.copy()
         k = self._owner[-1]
         return self._pose_cov_of.at(self.graph.poses[k], self._rel[-1], self._cov, self._kf_step[k] == self._index)
@@ -559,6 +558,7 @@ class LidarSLAM(EstimatorLifecycle):
             raise ValueError("LidarSLAM.seed_prior_layers: call it right after reset(), before any step")
         self.layers = layers
         self._kf_xy = np.asarray(keyframe_poses, dtype=np.float64).reshape(-1, 3)[:, :2].copy()
+        self._pose_cov_of.coverage = [np.zeros((3, 3))] * len(self._kf_xy)  # the saved map is the frame
 
     def seed_prior_map(self, poses: Array, scans: list[Scan], scan: Scan, pose: Array, information: Array,
                        step_index: int) -> None:

@@ -11,6 +11,11 @@ chain and shrinks when a loop enters. Kept here without a whole-graph factorisat
 * each scan's pose is the newest keyframe composed with the tracked relative pose, carried the same way with the
   covariance an edge to it would get.
 
+Lifelong mode localises every scan in its static layer, which never moves: a pose is as uncertain as the map where
+it matched plus the match itself. :meth:`PoseCovariance.in_layer` takes the map's uncertainty there to be that of the
+nearest coverage keyframe (the pose that mapped that ground), so it grows while new ground is mapped and falls back
+when old ground is seen again; a saved map's keyframes are its frame (zero).
+
 Shapes: poses (3,), covariances (3,3).
 """
 
@@ -32,6 +37,17 @@ class PoseCovariance:
     def __init__(self, floor_xy_m: float, floor_theta_rad: float) -> None:
         self.floor = np.diag([floor_xy_m**2, floor_xy_m**2, floor_theta_rad**2])
         self.keyframe = np.zeros((3, 3))  # the first keyframe is the gauge: held, zero covariance
+        self.coverage: list[Array] = []  # lifelong mode: each coverage keyframe's covariance when it was added
+        self.current = np.zeros((3, 3))  # lifelong mode: the last scan's
+
+    def in_layer(self, near_d2: Array, match_cov: Array, new_keyframe: bool) -> Array:
+        """Lifelong mode: the scan's covariance, the nearest coverage keyframe's (squared distances ``near_d2``
+        (K,); none yet: zero) plus the floored match's; ``new_keyframe``: the scan becomes a coverage keyframe."""
+        base = self.coverage[int(np.argmin(near_d2))] if len(near_d2) else np.zeros((3, 3))
+        self.current = base + match_cov + self.floor
+        if new_keyframe:
+            self.coverage.append(self.current)
+        return self.current
 
     def edge(self, prev: Array, match_cov: Array) -> Array:
         """The covariance of a relative pose from keyframe pose ``prev`` measured by a scan match of world-frame
