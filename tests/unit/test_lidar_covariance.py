@@ -124,9 +124,9 @@ def test_lifelong_pose_cov_takes_the_map_s_uncertainty_where_the_scan_matched() 
 @pytest.mark.slow
 def test_lifelong_pose_nees_is_near_the_band_and_an_overconfident_twin_is_not() -> None:
     """Measured on the room (lifelong mode localises in its own static layer): mean NEES 2.34 (6 seeds x 150 steps,
-    91 % of steps inside) and 1.94 (seeds 10-19 x 200); the scan match's covariance alone, reported before, gave 255.
-    The twin (floors x0.1): 24.6. Asserted: the default inside half the band's bottom and twice its top, the twin
-    over three times the top."""
+    91 % of steps inside) and 1.94 (seeds 10-19 x 200); the match covariance alone, reported before, gave 251
+    (20 seeds x 200). The twin (floors x0.1): 24.6. Asserted: the default inside half the band's bottom and twice
+    its top, the twin over three times the top."""
     seeds = range(6)
     band = chi2_band(3, len(seeds), 0.95)
     honest, inside = _mean_nees({}, seeds, 120, "lidar-lifelong", "room")
