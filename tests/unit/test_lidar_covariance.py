@@ -17,6 +17,7 @@ from slam2d.graph.graph import Values
 from slam2d.graph.incremental import IncrementalPoseGraph
 from slam2d.graph.lidar import LidarSLAM, LidarSLAMConfig
 from slam2d.graph.lidar_covariance import PoseCovariance
+from slam2d.graph.lidar_markers import MarkerPoseGraph
 from slam2d.graph.marginals import marginal_covariances
 from slam2d.lab.registry import make_estimator
 from slam2d.sim import simulate
@@ -48,6 +49,25 @@ def test_newest_covariance_is_the_graph_marginal_and_only_while_the_graph_is_unc
     assert g.newest_covariance() is None
     g.finalize()  # Levenberg-Marquardt: its factor holds the damping
     assert g.newest_covariance() is None
+
+
+def test_newest_covariance_with_floor_markers_is_the_marginal_of_the_graph_with_them() -> None:
+    """Marker factors tighten the newest pose: its covariance is read from the marker solve's factor."""
+    g = MarkerPoseGraph(np.zeros(3))
+    info = np.diag([400.0, 400.0, 2500.0])[None]
+    for t in range(1, 9):
+        g.add_step(t, np.array([t - 1]), np.array([t]), np.array([[0.5, 0.0, 0.1]]), info)
+        g.add_marker_observations(t, np.array([t % 3]), np.array([[0.3, 0.2]]), (np.eye(2) / 0.01**2)[None])
+        assert g.newest_covariance() is None
+    g.solve_full(30)
+    g.solve_full(1)
+    got = g.newest_covariance()
+    graph, _, _ = g._with_markers(g.graph(), np.arange(g.num_observations))
+    values = Values(np.arange(g.num_poses), g.poses, np.arange(len(g.marker_ids)), g.markers)
+    want = marginal_covariances(graph, values, [g.num_poses - 1]).block("pose", g.num_poses - 1)
+    assert got is not None  # the factor is at the last step's start: the readings disagree, so not exactly the end
+    np.testing.assert_allclose(got, want, rtol=1e-3, atol=1e-12)
+    assert np.trace(got) < np.trace(_newest_marginal(g))  # the same graph without its markers is looser
 
 
 def test_pose_cov_at_each_keyframe_is_the_chain_marginal() -> None:

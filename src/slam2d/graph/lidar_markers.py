@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from slam2d.geometry import se2
 from slam2d.graph.graph import FactorGraph, Values
 from slam2d.graph.incremental import IncrementalConfig, IncrementalPoseGraph
-from slam2d.graph.optimizer import Optimizer, OptimizerConfig, Summary, optimize
+from slam2d.graph.optimizer import Optimizer, OptimizerConfig, Summary
 from slam2d.log import MarkerReadings
 from slam2d.models.floor_markers import FloorCameraConfig
 
@@ -160,10 +160,12 @@ class MarkerPoseGraph(IncrementalPoseGraph):
         g, _, _ = self._with_markers(self._graph(np.arange(self.num_edges)), np.arange(len(self._o_pose)))
         cfg = OptimizerConfig(method="lm" if method == "lm" else "gn", max_iterations=iterations)
         m = np.arange(len(self.marker_ids))
-        out, summary = optimize(g, Values(np.arange(n), self.poses, m, self._markers), cfg)
+        opt = Optimizer(g, cfg)
+        out, summary = opt.optimize(Values(np.arange(n), self.poses, m, self._markers))
         self._poses[:n] = out.poses
         self._markers[out.point_keys] = out.points
         self.full_solves += 1
+        self._factored = opt if cfg.method == "gn" else None  # newest_covariance reads its factor
         return summary
 
 
