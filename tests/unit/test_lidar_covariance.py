@@ -2,8 +2,8 @@
 static layer (slam2d.graph.lidar_covariance).
 
 Checked against an independent computation (the graph's marginal from a fresh factorisation,
-:func:`slam2d.graph.marginals.marginal_covariances`) and by Monte-Carlo NEES on the simulated loop, with an
-overconfident twin (floors x0.1) that must fail where the default passes.
+:func:`slam2d.graph.marginals.marginal_covariances`) and by Monte-Carlo NEES on the simulated loop (lifelong mode: the
+room), with an overconfident twin (floors x0.1) that must fail where the default passes.
 """
 
 from __future__ import annotations
