@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 
 from slam2d.geometry import se2
 from slam2d.graph.graph import FactorGraph, Values
+from slam2d.graph.marginals import factored_block
 from slam2d.graph.optimizer import Optimizer, OptimizerConfig, Summary
 
 Array = NDArray[np.float64]
@@ -180,14 +181,10 @@ class IncrementalPoseGraph:
         opt = self._factored
         if opt is None or opt.analysis is None or opt.solver is None:
             return None
-        an = opt.analysis
-        cols, _ = an.variable_slices([self.num_poses - 1])
+        cols, _ = opt.analysis.variable_slices([self.num_poses - 1])
         if np.any(cols < 0):  # the newest pose is the held one
             return np.zeros((3, 3))
-        unit = np.zeros((an.n, 3))
-        unit[cols, np.arange(3)] = 1.0
-        x = np.asarray(opt.solver.solve(unit)).reshape(an.n, 3)[cols]
-        return 0.5 * (x + x.T)
+        return factored_block(opt.solver, opt.analysis.n, cols)
 
     def solve_full(self, iterations: int) -> Summary:
         """Gauss-Newton on the whole graph (``iterations`` at most), from the current estimate."""

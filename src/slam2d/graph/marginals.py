@@ -57,12 +57,17 @@ def marginal_covariances(graph: FactorGraph, values: Values, pose_keys: ArrayLik
         _, _, data, _ = an.linearize(values.poses, values.points)
         solver = solver if solver is not None and analysis is not None else make_solver(linear_solver)
         solver.factorize(an.upper(data))
-        E = np.zeros((an.n, int(free.sum())))
-        E[cols[free], np.arange(E.shape[1])] = 1.0
-        X = solver.solve(E).reshape(an.n, -1)
-        sub = X[cols[free]]
-        joint[np.ix_(free, free)] = 0.5 * (sub + sub.T)
+        joint[np.ix_(free, free)] = factored_block(solver, an.n, cols[free])
     return Marginals(joint, labels, offsets)
+
+
+def factored_block(solver: LinearSolver, n: int, cols: NDArray[np.int64]) -> Array:
+    """The block ``H^-1[cols, cols]`` (k,k) of a Hessian of dimension ``n`` that ``solver`` has factorised: ``H X = E``
+    for the k unit columns, symmetrised."""
+    unit = np.zeros((n, cols.size))
+    unit[cols, np.arange(cols.size)] = 1.0
+    sub = np.asarray(solver.solve(unit)).reshape(n, -1)[cols]
+    return np.asarray(0.5 * (sub + sub.T), dtype=np.float64)
 
 
 @dataclass
