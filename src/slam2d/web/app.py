@@ -41,6 +41,9 @@ MAX_COMMAND_BYTES = 4096
 #: protocol-level limit handed to uvicorn: larger messages close the connection (code 1009) before parsing
 WS_MAX_SIZE = 1 << 20
 DEFAULT_HZ = 60
+#: pages open at once (each owns a simulation and a worker thread); more are refused with a message, so a script
+#: opening sockets in a loop cannot exhaust the machine's memory, threads or CPU
+MAX_SESSIONS = 32
 
 log = logging.getLogger("slam2d.web")
 
@@ -237,15 +240,17 @@ class OriginHostGuard:
         await self.app(scope, receive, send)
 
 
-def create_app(*, allow_origins: frozenset[str] = frozenset(), hosts: frozenset[str] | None = None) -> FastAPI:
+def create_app(*, allow_origins: frozenset[str] = frozenset(), hosts: frozenset[str] | None = None,
+               max_sessions: int = MAX_SESSIONS) -> FastAPI:
     """The lab application (run with uvicorn, ``ws_per_message_deflate=False``); every request passes
-    :class:`OriginHostGuard` first."""
+    :class:`OriginHostGuard` first. At most ``max_sessions`` pages have a session at once (one being built counts)."""
     app = FastAPI(title="slam2d lab", docs_url=None, redoc_url=None, openapi_url=None)
     for p in PAGES:  # a broken page template fails here, at start, not when someone opens the page
         render_chapter(p.slug)
     app.add_middleware(OriginHostGuard, allow_origins=allow_origins, hosts=hosts)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     register_fleet(app)
+    sessions: set[WebSocket] = set()  # the sockets that hold a session (built, or being built)
 
     @app.get("/")
     async def index() -> FileResponse:
@@ -275,11 +280,18 @@ def create_app(*, allow_origins: frozenset[str] = frozenset(), hosts: frozenset[
             await ws.send_text(json.dumps({"type": "error", "message": f"unknown page {slug!r}"}))
             await ws.close(code=1008)
             return
+        if len(sessions) >= max_sessions:
+            await ws.send_text(json.dumps({"type": "error", "message": (
+                f"too many pages open on this lab ({max_sessions} at most): close another tab, then reload this "
+                "page")}))
+            await ws.close(code=1013)  # try again later
+            return
         seed = _int_query(ws, "seed", 0, 0, 2**31 - 1)
         hz = _int_query(ws, "hz", DEFAULT_HZ, 1, 120)
         conn: Connection | None = None
         tasks: list[asyncio.Task[None]] = []
         worker = SessionWorker(f"session-{slug}")
+        sessions.add(ws)
         try:
             session = await worker.run(spec.make, seed)
             conn = Connection(ws, session, hz, worker)
@@ -308,6 +320,7 @@ def create_app(*, allow_origins: frozenset[str] = frozenset(), hosts: frozenset[
             if not _is_disconnect(exc):
                 log.exception("session %s failed", slug)
         finally:
+            sessions.discard(ws)
             worker.close()
             if ws.client_state == WebSocketState.CONNECTED and ws.application_state == WebSocketState.CONNECTED:
                 try:

@@ -48,6 +48,9 @@ GRAPH_WINDOW = 20
 MAX_EDGES, MAX_NODES = 1500, 500
 #: the loop page's "you are back" prompt: after driving farther than AWAY from the start, coming within NEAR of it
 RETURN_AWAY_M, RETURN_NEAR_M = 20.0, 6.0
+#: particles x the world's landmarks at most (a particle back end keeps an EKF per pair, and copies all when it
+#: resamples: 2000 x 2000 took 1.2 GB after 30 steps)
+MAX_PARTICLE_LANDMARKS = 200_000
 
 SIM_LABELS = {
     "step": "step", "time_s": "simulated time (s)", "landmarks_seen": "landmarks seen so far",
@@ -143,9 +146,26 @@ class SimSession(Session):
         extra: dict[str, Any] = {}
         if landmarks > 0 and "landmarks" in SCENARIOS[name].defaults:
             extra["landmarks"] = landmarks
-        # scans only for the lidar back end, every LIDAR_EVERY steps (scan matching costs more than a step)
-        lidar = LidarConfig(every=LIDAR_EVERY) if self.values["estimator"] == "lidar" else LidarConfig(enabled=False)
+        # scans only for the lidar back ends, every LIDAR_EVERY steps (scan matching costs more than a step)
+        lidar = LidarConfig(every=LIDAR_EVERY) if self._needs_scans(str(self.values["estimator"])) \
+            else LidarConfig(enabled=False)
         return ScenarioConfig(name=name, sensor=sensor, motion=motion, lidar=lidar, **extra)
+
+    @staticmethod
+    def _needs_scans(name: str) -> bool:  # a lidar back end (lidar, lidar-lifelong): the simulator must scan for it
+        return get_spec(name).needs == "scans"
+
+    def _check_particle_budget(self) -> None:
+        """ValueError (the command is refused) when a particle back end would exceed ``MAX_PARTICLE_LANDMARKS``."""
+        if "particles" not in self._config_fields(str(self.values["estimator"])):
+            return
+        m = int(self.values["particles"])
+        n = len(Simulator(self._scenario_config(), seed=int(self.values["seed"])).world.landmark_ids)
+        if m * n > MAX_PARTICLE_LANDMARKS:
+            raise ValueError(f"{m} particles x {n} landmarks is more than this page allows "
+                             f"({MAX_PARTICLE_LANDMARKS} landmark filters); use at most "
+                             f"{max(1, MAX_PARTICLE_LANDMARKS // max(n, 1))} particles in this world, or fewer "
+                             "landmarks")
 
     def _config_fields(self, name: str) -> set[str]:
         return {f.name for f in dataclasses.fields(get_spec(name).config_cls)}
@@ -167,8 +187,8 @@ class SimSession(Session):
         """(Re)start the simulator and estimator from the current values (same seed: same world and noise)."""
         name = str(self.values["estimator"])
         self.start_error: str | None = None
-        if name == "lidar" and self.values["scenario"] not in LIDAR_WORLDS:
-            self.start_error = (f"estimator 'lidar' matches scans against walls: choose the world "
+        if self._needs_scans(name) and self.values["scenario"] not in LIDAR_WORLDS:
+            self.start_error = (f"estimator '{name}' matches scans against walls: choose the world "
                                 f"{' or '.join(LIDAR_WORLDS)}; showing 'dead-reckoning' instead.")
             name = self.values["estimator"] = "dead-reckoning"
         self.sim = Simulator(self._scenario_config(), seed=int(self.values["seed"]))
@@ -242,6 +262,7 @@ class SimSession(Session):
             self.sim.config = dataclasses.replace(
                 self.sim.config, sensor=dataclasses.replace(self.sim.config.sensor, max_range_m=float(value)))
         elif not p.live and value != old:
+            self._check_particle_budget()
             self._build()
 
     def on_action(self, name: str) -> None:
