@@ -124,3 +124,30 @@ def test_sessions_beyond_the_limit_are_refused_with_a_message_and_a_closed_one_f
     assert refused["type"] == "error" and "too many pages open" in refused["message"], refused
     assert code == 1013
     assert again["type"] == "hello"
+
+
+def test_two_pages_opening_a_new_warehouse_seed_at_once_build_its_saved_map_once(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The saved map takes 13-20 s to build: the second tab waits for the first tab's build instead of repeating
+    it. (The build is replaced by a slow counter; the cache is emptied before and after.)"""
+    import time
+
+    from slam2d.web.sessions import warehouse
+
+    builds: list[int] = []
+
+    def slow_simulate(config: Any, seed: int) -> Any:
+        builds.append(seed)
+        time.sleep(0.5)
+        return seed
+
+    monkeypatch.setattr(warehouse, "simulate", slow_simulate)
+    monkeypatch.setattr(warehouse, "snapshot_from_truth", lambda log, layers: ("snapshot", log))
+    warehouse._build_saved_map.cache_clear()
+    try:
+        with concurrent.futures.ThreadPoolExecutor(3) as ex:
+            got = list(ex.map(warehouse.saved_map, [7, 7, 7]))
+    finally:
+        warehouse._build_saved_map.cache_clear()
+    assert got == [("snapshot", 7)] * 3
+    assert builds == [7]

@@ -15,6 +15,7 @@ estimator labelled dynamic is counted against the same truth.
 
 from __future__ import annotations
 
+import threading
 import time
 from functools import lru_cache
 from typing import Any
@@ -93,10 +94,20 @@ def max_forklifts() -> int:
     return best
 
 
-@lru_cache(maxsize=2)
+#: saved_map's builds of the same seed wait for each other (two tabs opening a new seed at once built it twice,
+#: 13-20 s each); a fixed set of locks, so that the seeds asked for cannot grow it
+_BUILD_LOCKS = tuple(threading.Lock() for _ in range(8))
+
+
 def saved_map(seed: int) -> MapSnapshot:
     """Flight 1's map from its true poses (with floor markers and the static layer), built once per seed and
-    process."""
+    process (the two newest seeds are kept)."""
+    with _BUILD_LOCKS[seed % len(_BUILD_LOCKS)]:
+        return _build_saved_map(seed)
+
+
+@lru_cache(maxsize=2)
+def _build_saved_map(seed: int) -> MapSnapshot:
     # a scan every 4th step (0.48 m of travel): keyframes are kept every 1 m anyway, and it builds 4x faster
     return snapshot_from_truth(simulate(with_overrides(scenario(0, DEFAULT_FORKLIFTS, True), {"lidar.every": "4"}),
                                         seed), layers=LayersConfig())
