@@ -4,15 +4,22 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import sys
+from collections.abc import Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from slam2d.cli.common import add_force_argument
-from slam2d.io.atomic import atomic_path
+from slam2d.io.atomic import atomic_path, atomic_write
 from slam2d.log import Log
+
+if TYPE_CHECKING:
+    from slam2d.eval.relations import Relations
+    from slam2d.io.carmen import CarmenConfig
 
 
 def register(sub: Any) -> None:
@@ -37,15 +44,72 @@ def register(sub: Any) -> None:
     p.set_defaults(func=cmd)
 
 
+def carmen_config(options: Mapping[str, Any] | None = None) -> CarmenConfig:
+    """A :class:`CarmenConfig` from loader options (``--dataset-opt KEY=VALUE``: max_range_m=30, on_error=skip,
+    backwards_stamps=skip, max_lines=N); an unknown key or a value of the wrong kind is a ValueError naming it."""
+    from slam2d.io.carmen import CarmenConfig
+
+    opts = dict(options or {})
+    defaults = {f.name: f.default for f in dataclasses.fields(CarmenConfig)}
+    bad = sorted(set(opts) - set(defaults))
+    if bad:
+        raise ValueError(f"unknown option(s) {bad} for a CARMEN log; valid options: {sorted(defaults)}")
+    for k, v in opts.items():
+        number = isinstance(v, (int, float)) and not isinstance(v, bool)
+        if isinstance(defaults[k], (int, float)) and not number:
+            raise ValueError(f"CARMEN log option {k} must be a number (got {v!r})")
+        if isinstance(defaults[k], int) and not isinstance(defaults[k], bool) and not isinstance(v, int):
+            raise ValueError(f"CARMEN log option {k} must be an integer (got {v!r})")
+    return CarmenConfig(**opts)
+
+
 def load_laser_log(name: str, data_dir: str | None = None, max_steps: int | None = None,
-                   max_time_s: float | None = None) -> Log:
-    """A CARMEN log (Radish name or path) as a ``Log``; its metadata keep the file path and original stamps."""
+                   max_time_s: float | None = None, options: Mapping[str, Any] | None = None) -> Log:
+    """A CARMEN log (Radish name or path) as a ``Log``; its metadata keep the file path and original stamps.
+
+    ``options`` set :class:`CarmenConfig` fields (see :func:`carmen_config`). A cut (``max_steps``, ``max_time_s``
+    seconds after the first scan) that leaves no step is a ValueError, never the whole log."""
     from slam2d.io.carmen import read_carmen, resolve_carmen
 
-    log = read_carmen(resolve_carmen(name, data_dir)).to_log()
+    log = read_carmen(resolve_carmen(name, data_dir), carmen_config(options)).to_log()
+    steps = log.num_steps
     if max_time_s is not None:
-        max_steps = min(max_steps or log.num_steps, int(np.searchsorted(log.stamps_s, max_time_s, side="right")) - 1)
-    return log.head(max_steps) if max_steps else log
+        steps = min(steps, int(np.searchsorted(log.stamps_s, max_time_s, side="right")) - 1)
+    if max_steps is not None:
+        steps = min(steps, int(max_steps))
+    if steps < 1:
+        raise ValueError(f"{log.metadata['path']}: the requested cut (max_steps={max_steps}, max_time_s={max_time_s}) "
+                         f"leaves no step: the second scan is {log.stamps_s[1]:.6g} s after the first")
+    return log.head(steps) if steps < log.num_steps else log
+
+
+def find_relations(log_path: str | Path | None, relations: str | Path | None = None) -> Path | None:
+    """The relations file to score against: ``relations`` if given, else ``<log>.relations`` beside the log."""
+    from slam2d.io.carmen import relations_beside
+
+    if relations:
+        return Path(relations)
+    return relations_beside(log_path) if log_path is not None else None
+
+
+def load_relations(log: Log, relations: str | Path | None = None) -> Relations | None:
+    """The relations of :func:`find_relations`, read now: a missing or malformed file fails before the (minutes of)
+    SLAM, not after them."""
+    from slam2d.eval.relations import read_relations
+
+    path = find_relations(log.metadata.get("path"), relations)
+    return read_relations(path) if path is not None else None
+
+
+@contextlib.contextmanager
+def _naming(option: str, path: str | Path) -> Iterator[None]:
+    """An OSError without a file name (ENOSPC writing /dev/full) names the option and path."""
+    try:
+        yield
+    except OSError as e:
+        if e.filename is None and e.errno is not None:
+            raise type(e)(e.errno, e.strerror or str(e), f"{option} {path}") from e
+        raise
 
 
 #: what each counted problem of a CARMEN log means, for the note the commands print
@@ -78,49 +142,51 @@ def original_stamps(log: Log) -> np.ndarray:
     return np.asarray(st[: log.num_steps + 1] if st is not None else log.stamps_s, dtype=np.float64)
 
 
-def write_tum_stamped(path: Path, stamps: np.ndarray, poses: np.ndarray) -> None:
+def write_tum_stamped(path: str | Path, stamps: np.ndarray, poses: np.ndarray) -> None:
     """A TUM file whose stamps are written as the shortest text that reads back as the same float (so a CARMEN
-    stamp ``976052896.784509`` stays ``976052896.784509`` and matches the relations files by string too)."""
+    stamp ``976052896.784509`` stays ``976052896.784509`` and matches the relations files by string too); written
+    crash-safely (a temporary file, then a rename)."""
     from slam2d.io.tum import poses_to_tum
 
     rows = poses_to_tum(stamps, poses)
-    with open(path, "w") as f:
+    with atomic_write(path) as f:
         f.write("# timestamp tx ty tz qx qy qz qw\n")
         f.writelines(f"{float(r[0])!r} " + " ".join(f"{v:.9g}" for v in r[1:]) + "\n" for r in rows)
 
 
 def laser_outputs(log: Log, trajectory: np.ndarray, record: dict[str, Any], *, trajectory_out: str | None = None,
-                  map_out: str | None = None, resolution_m: float = 0.05, relations: str | None = None,
+                  map_out: str | None = None, resolution_m: float = 0.05, relations: str | Relations | None = None,
                   draw_path: bool = False) -> None:
     """Write the TUM trajectory / occupancy map PNG and add relation errors (mean +- std, trans and rot) of the
-    estimate and of the logged odometry to ``record`` when a relations file is given or sits beside the log."""
-    from slam2d.eval.relations import read_relations, relation_errors
+    estimate and of the logged odometry to ``record`` when a relations file (or :func:`load_relations`'s result) is
+    given or sits beside the log. The map is built before anything is written: a map that cannot be built leaves
+    no trajectory file behind."""
+    from slam2d.eval.relations import Relations, relation_errors
     from slam2d.geometry import se2
-    from slam2d.io.carmen import relations_beside
 
     stamps = original_stamps(log)
-    if trajectory_out:
-        with atomic_path(trajectory_out) as tmp:
-            write_tum_stamped(tmp, stamps, trajectory)
-        record["trajectory_file"] = str(trajectory_out)
+    grid = None
     if map_out:
         if log.scan_ranges_m is None or log.scan_angles_rad is None or log.scan_step is None:
             raise ValueError("--map needs a log with lidar scans")
         from slam2d.maps.occupancy import grid_from_scans
-        from slam2d.viz.maps import save_occupancy_png
 
         grid = grid_from_scans(trajectory[log.scan_step], log.scan_ranges_m, log.scan_angles_rad,
                                log.scan_max_range_m, resolution_m=resolution_m)
-        with atomic_path(map_out) as tmp:
+    rel = relations if isinstance(relations, Relations) else load_relations(log, relations)
+    if trajectory_out:
+        with _naming("--trajectory", trajectory_out):
+            write_tum_stamped(trajectory_out, stamps, trajectory)
+        record["trajectory_file"] = str(trajectory_out)
+    if map_out and grid is not None:
+        from slam2d.viz.maps import save_occupancy_png
+
+        with _naming("--map", map_out), atomic_path(map_out) as tmp:
             save_occupancy_png(grid, tmp, trajectory if draw_path else None)
         record["map"] = str(map_out)
         record["map_cells"] = f"{grid.shape[1]}x{grid.shape[0]}"
-    rel_path = Path(relations) if relations else None
-    if rel_path is None and "path" in log.metadata:
-        rel_path = relations_beside(str(log.metadata["path"]))
-    if rel_path is None:
+    if rel is None:
         return
-    rel = read_relations(rel_path)
     odo = se2.compose_chain(log.initial_pose, log.odometry)
     for label, poses in (("rel", trajectory), ("odometry_rel", odo)):
         errors = relation_errors(stamps, poses, rel, on_missing="skip")
@@ -129,7 +195,7 @@ def laser_outputs(log: Log, trajectory: np.ndarray, record: dict[str, Any], *, t
                                                                        "rot_mean_deg", "rot_std_deg")})
     record["relations"] = len(rel)
     record["relations_used"] = int(len(rel) - e["missing"])
-    record["relations_file"] = str(rel_path)
+    record["relations_file"] = rel.path
     if e["missing"]:  # a prefix of the log (--max-steps), or a relations file of another log
         print(f"slam2d: note: {int(e['missing'])} of {len(rel)} relations name stamps the estimate has no pose "
               f"for, left out; first: {skipped[0]}", file=sys.stderr)
@@ -148,9 +214,10 @@ def cmd(args: argparse.Namespace) -> int:
     if not Path(source).is_file():  # /dev/zero, a FIFO: never read line by line without end
         raise ValueError(f"{source}: not a regular file (a CARMEN log is a .clf or .clf.bz2 file)")
     out = args.out or f"{Path(source).name.split('.')[0]}_map.png"
-    check_outputs(args, [source, args.relations], [("--out", out), ("--json", args.json),
-                                                   ("--trajectory", args.trajectory)])
+    check_outputs(args, [source, find_relations(source, args.relations)],
+                  [("--out", out), ("--json", args.json), ("--trajectory", args.trajectory)])
     log = load_laser_log(args.dataset, args.data_dir)
+    relations = load_relations(log, args.relations)
     problems = report_log_problems(log)
     overrides = {f"estimator.{k}": v for k, v in overrides_from(args).items()}
     if args.no_loops:
@@ -158,7 +225,7 @@ def cmd(args: argparse.Namespace) -> int:
     result, record = run_named("lidar", None, overrides=overrides, log=log, progress=None)
     record.update(problems)
     laser_outputs(log, result.trajectory, record, trajectory_out=args.trajectory, map_out=out,
-                  resolution_m=args.resolution, relations=args.relations,
+                  resolution_m=args.resolution, relations=relations,
                   draw_path=args.path)
     cols = ["scenario", "steps", "rel_trans_mean_m", "rel_trans_std_m", "rel_rot_mean_deg", "rel_rot_std_deg",
             "odometry_rel_trans_mean_m", "step_ms_mean", "step_ms_p99", "map"]

@@ -16,10 +16,10 @@ from slam2d.cli.common import (
     print_table,
     write_json,
 )
-from slam2d.cli.lidar import laser_outputs, load_laser_log, report_log_problems
+from slam2d.cli.lidar import find_relations, laser_outputs, load_laser_log, load_relations, report_log_problems
 from slam2d.config import parse_set_args
 from slam2d.eval.gps import gps_ate
-from slam2d.io.carmen import is_carmen_source
+from slam2d.io.carmen import is_carmen_source, resolve_carmen
 from slam2d.io.datasets import DATASETS, load_dataset
 from slam2d.io.survey import read_marker_survey
 from slam2d.lab.multi_robot import MULTI_ESTIMATORS, run_multi, table_rows
@@ -53,7 +53,7 @@ def register(sub: Any) -> None:
     p.add_argument("--max-time", type=float, default=None, metavar="S", help="use only the first S seconds")
     p.add_argument("--dataset-opt", action="append", default=[], metavar="KEY=VALUE",
                    help="a loader option (repeatable), e.g. dt_s=0.2 or others=keep (mrclam), max_range_m=30 "
-                        "(victoria-park)")
+                        "(victoria-park, CARMEN logs), on_error=skip or backwards_stamps=skip (CARMEN logs)")
     p.add_argument("--estimator", default="dead-reckoning",
                    help=f"one of: {', '.join(estimator_names())} (default dead-reckoning); with --robot all: "
                         f"{', '.join(MULTI_ESTIMATORS)}")
@@ -116,8 +116,13 @@ def cmd(args: argparse.Namespace) -> int:
     check_number("--seed", args.seed, low=0, high=2**63 - 1)
     check_number("--max-steps", args.max_steps, low=1)
     check_number("--max-time", args.max_time, low=0, low_open=True)
-    check_outputs(args, [args.log, args.dataset_path], [("--json", args.json), ("--trajectory", args.trajectory),
-                                                         ("--map", args.map)])
+    carmen = resolve_carmen(args.dataset, args.data_dir) if args.dataset and is_carmen_source(args.dataset) else None
+    if carmen is not None and args.dataset_path:
+        raise ValueError(f"--dataset-path does not apply to a CARMEN log (--dataset {args.dataset}): pass the file "
+                         "itself as --dataset PATH.clf")
+    # a CARMEN log and the relations beside it are inputs too: --trajectory LOG.clf must not overwrite the log
+    inputs = [args.log, args.dataset_path, carmen, find_relations(carmen)]
+    check_outputs(args, inputs, [("--json", args.json), ("--trajectory", args.trajectory), ("--map", args.map)])
     if args.robot == "all" or args.estimator in MULTI_ESTIMATORS or args.unknown_starts:
         return _cmd_multi(args)
     if args.marker_survey and args.estimator != "lidar-lifelong":
@@ -125,8 +130,11 @@ def cmd(args: argparse.Namespace) -> int:
     if args.map_in or args.map_out:
         return _cmd_session(args)
     problems: dict[str, int] = {}
-    if args.dataset and is_carmen_source(args.dataset):
-        log = load_laser_log(args.dataset, args.data_dir, args.max_steps, args.max_time)
+    relations = None
+    if carmen is not None:
+        opts = {k: _literal(v) for k, v in parse_set_args(args.dataset_opt).items()}
+        log = load_laser_log(args.dataset, args.data_dir, args.max_steps, args.max_time, opts)
+        relations = load_relations(log)  # read before the run: a bad file fails now, not after it
         problems = report_log_problems(log)
     elif args.dataset:
         opts = {k: _literal(v) for k, v in parse_set_args(args.dataset_opt).items()}
@@ -160,7 +168,7 @@ def cmd(args: argparse.Namespace) -> int:
             record["gps_ate_rmse_m"] = gps_ate(result.trajectory, log).rmse_m
     if args.trajectory or args.map or (log is not None and "stamps_original_s" in log.metadata):
         laser_outputs(log if log is not None else _simulated(args), result.trajectory, record,
-                      trajectory_out=args.trajectory, map_out=args.map)
+                      trajectory_out=args.trajectory, map_out=args.map, relations=relations)
     print_table([record], [c for c in COLUMNS if c in record])
     if args.json:
         write_json(args.json, record)

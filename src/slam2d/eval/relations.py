@@ -26,6 +26,9 @@ from slam2d.log import LogFormatError
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
+#: the longest line a relations file may have (one holds 8 numbers): a binary file fails at its first long line
+MAX_LINE_CHARS = 10_000
+
 
 @dataclass(frozen=True)
 class Relations:
@@ -50,11 +53,18 @@ def read_relations(path: str | Path) -> Relations:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such relations file")
+    if path.is_dir():
+        raise IsADirectoryError(21, "is a directory, not a relations file", str(path))
+    if not path.is_file():  # /dev/zero would never end, a FIFO would block
+        raise LogFormatError(f"{path}: not a regular file (a relations file has lines 't1 t2 x y z roll pitch yaw')")
     st: list[list[float]] = []
     rel: list[list[float]] = []
     lines: list[int] = []
     with open(path, encoding="ascii", errors="replace") as f:
-        for lineno, line in enumerate(f, start=1):
+        for lineno, line in enumerate(iter(lambda: f.readline(MAX_LINE_CHARS + 1), ""), start=1):
+            if len(line) > MAX_LINE_CHARS:
+                raise LogFormatError(f"{path}:{lineno}: line longer than {MAX_LINE_CHARS} characters (not a "
+                                     "relations file?)")
             tok = line.split()
             if not tok or tok[0].startswith("#"):
                 continue

@@ -79,7 +79,8 @@ class CarmenLog:
     no-return beams set to ``max_range_m``, angles_rad (B,), poses (S,3) the pose logged with each scan (odometry
     frame; the laser pose for ROBOTLASER1), odom_stamps_s (O,), odom_poses (O,3).
     ``record_counts`` counts every record type seen; ``unknown`` the ones this reader does not use;
-    ``invalid_beams`` the number of NaN/inf/non-positive readings replaced by no-return; ``problems`` lists
+    ``invalid_beams`` the number of NaN/inf/negative readings (of the scans kept) replaced by no-return (a 0 reading
+    is a no-return too, not counted); ``problems`` lists
     ``file:line: message`` for skipped lines; ``invalid_beam_lines`` and ``backwards_stamps`` the lines with such
     beams / with a timestamp older than an earlier scan's (kept).
     """
@@ -119,7 +120,9 @@ class CarmenLog:
         relations). No ground truth.
         """
         if self.num_scans < 2:
-            raise LogFormatError(f"{self.path}: need at least 2 scans to build a log (got {self.num_scans})")
+            why = (f"; {len(self.problems)} lines skipped, first: {self.problems[0]}" if self.problems else
+                   f"; records read: {', '.join(f'{k} x{v}' for k, v in sorted(self.record_counts.items())) or 'none'}")
+            raise LogFormatError(f"{self.path}: need at least 2 scans to build a log (got {self.num_scans}{why})")
         odo = se2.between(self.poses[:-1], self.poses[1:])
         t = odo.shape[0]
         return Log(
@@ -192,6 +195,8 @@ def _count(tok: list[str], i: int, what: str) -> int:
     v = _floats(tok, i, 1, what)[0]
     if not (math.isfinite(v) and v >= 0 and v == int(v)):
         raise _Bad(f"{tok[0]} record: {what} must be a non-negative integer (got {tok[i]!r})")
+    if v > len(tok):  # 1e300 readings: say so, not "needs fields 2..1000000000000000052504760255204420248704..."
+        raise _Bad(f"truncated {tok[0]} record: {what} is {tok[i]}, the line has {len(tok)} fields")
     return int(v)
 
 
@@ -204,6 +209,10 @@ def read_carmen(path: str | Path, config: CarmenConfig | None = None) -> CarmenL
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such CARMEN log")
+    if path.is_dir():
+        raise IsADirectoryError(21, "is a directory, not a CARMEN log", str(path))
+    if not path.is_file():  # a FIFO would block the open, /dev/zero never ends
+        raise LogFormatError(f"{path}: not a regular file (a CARMEN log is a .clf or .clf.bz2 file)")
     counts: Counter[str] = Counter()
     stamps: list[float] = []
     ranges: list[list[float]] = []
@@ -216,6 +225,7 @@ def read_carmen(path: str | Path, config: CarmenConfig | None = None) -> CarmenL
     backwards: list[str] = []
     latest = -math.inf
     beam_lines: list[str] = []
+    invalid_count = 0
 
     def fail(lineno: int, msg: str) -> None:
         full = f"{path}:{lineno}: {msg}"
@@ -244,6 +254,9 @@ def read_carmen(path: str | Path, config: CarmenConfig | None = None) -> CarmenL
                     ts = rest[6]
                 elif kind == "ROBOTLASER1":
                     head = _floats(tok, 2, 3, "start_angle, fov, resolution")
+                    if not all(math.isfinite(x) for x in head) or head[2] == 0:
+                        raise _Bad(f"ROBOTLASER1 record: start_angle, fov, resolution must be finite with a non-zero "
+                                   f"resolution (got {' '.join(tok[2:5])})")
                     n = _count(tok, 8, "num_readings")
                     r = _floats(tok, 9, n, "range readings")
                     m = _count(tok, 9 + n, "num_remissions")
@@ -281,14 +294,15 @@ def read_carmen(path: str | Path, config: CarmenConfig | None = None) -> CarmenL
                     empty_scans.append(f"{path}:{lineno}: {kind} record with no usable beam ({n} readings, all NaN, "
                                        f"inf, <= 0 or >= max range {cfg.max_range_m} m): scan skipped")
                     continue
-                bad_beams = int(np.sum(~np.isfinite(rv) | (rv < 0)))
-                if bad_beams:
-                    beam_lines.append(f"{path}:{lineno}: {bad_beams} NaN/inf/negative ranges read as no return")
                 if angles is None:
                     angles = np.asarray(a, dtype=np.float64)
                 elif len(a) != len(angles) or not np.allclose(a, angles, atol=1e-6):
                     raise _Bad(f"{kind} record: {len(a)} beams / beam angles differ from the first scan's "
                                f"({len(angles)} beams)")
+                bad_beams = int(np.sum(~np.isfinite(rv) | (rv < 0)))
+                if bad_beams:
+                    beam_lines.append(f"{path}:{lineno}: {bad_beams} NaN/inf/negative ranges read as no return")
+                    invalid_count += bad_beams
             except _Bad as e:
                 fail(lineno, str(e))
                 continue
@@ -297,12 +311,13 @@ def read_carmen(path: str | Path, config: CarmenConfig | None = None) -> CarmenL
             ranges.append(r)
             poses.append(pose)
     except (OSError, EOFError) as e:
-        raise LogFormatError(f"{path}: unreadable or truncated compressed file ({e})") from None
+        what = "unreadable or truncated compressed file" if path.suffix == ".bz2" else "unreadable file"
+        raise LogFormatError(f"{path}: {what} ({e})") from None
 
     b = 0 if angles is None else len(angles)
     rng_arr = np.asarray(ranges, dtype=np.float64).reshape(len(ranges), b)
-    invalid = ~np.isfinite(rng_arr) | (rng_arr <= 0)
-    rng_arr = np.where(invalid | (rng_arr >= cfg.max_range_m), cfg.max_range_m, rng_arr)
+    no_return = ~np.isfinite(rng_arr) | (rng_arr <= 0) | (rng_arr >= cfg.max_range_m)
+    rng_arr = np.where(no_return, cfg.max_range_m, rng_arr)
     unknown = {k: v for k, v in counts.items() if k not in {"FLASER", "ROBOTLASER1", "ODOM"} | _KNOWN_IGNORED}
     return CarmenLog(
         path=str(path),
@@ -315,7 +330,7 @@ def read_carmen(path: str | Path, config: CarmenConfig | None = None) -> CarmenL
         odom_poses=np.asarray(oposes, dtype=np.float64).reshape(-1, 3),
         record_counts=dict(counts),
         unknown=unknown,
-        invalid_beams=int(invalid.sum()),
+        invalid_beams=invalid_count,
         problems=tuple(problems + empty_scans),
         invalid_beam_lines=tuple(beam_lines),
         backwards_stamps=tuple(backwards),
