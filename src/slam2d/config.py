@@ -92,6 +92,8 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
             prefix = f"{tp.__name__}."
             raise ValueError(f"{where}.{msg[len(prefix):]}" if msg.startswith(prefix) else msg) from None
     if origin is tuple:
+        if isinstance(value, Mapping) or not isinstance(value, Iterable):  # a scalar or a table: name the field
+            raise ValueError(f"{where} must be a list (got {value!r})")
         items: list[Any] = [v for v in value.split(",") if v.strip()] if isinstance(value, str) else list(value)
         targs = typing.get_args(tp)
         if (len(targs) == 2 and targs[1] is Ellipsis) or len(targs) <= 1:  # tuple[X, ...]: any length, one type
@@ -108,16 +110,20 @@ def _coerce(value: Any, tp: Any, where: str) -> Any:
                 if value.lower() in ("0", "false", "no", "off"):
                     return False
                 raise ValueError
+            if value not in (0, 1):  # true/false (TOML, JSON) or 0/1; not 2 or 0.5
+                raise ValueError
             return bool(value)
-        if tp is int:
+        if tp is int or tp is float:
+            if isinstance(value, bool):  # `steps = true` is a mistake, not 1
+                raise ValueError
+            if tp is float:
+                return float(value)
             if isinstance(value, float) and not value.is_integer():
                 raise ValueError
             return int(value)
-        if tp is float:
-            return float(value)
         if tp is str:
             return str(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ValueError(f"{where} must be of type {tp.__name__} (got {value!r})") from None
     return value
 

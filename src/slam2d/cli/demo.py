@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from slam2d.cli.common import check_outputs, print_table, write_json
+from slam2d.cli.common import check_number, check_outputs, print_table, write_json
 from slam2d.cli.run import COLUMNS
 from slam2d.io.atomic import atomic_path
 from slam2d.lab.registry import estimator_names, get_spec
@@ -26,6 +26,7 @@ def register(sub: Any) -> None:
 
 
 def cmd(args: argparse.Namespace) -> int:
+    check_number("--seed", args.seed, low=0, high=2**63 - 1)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise NotADirectoryError(20, "--out must be a folder", str(out))

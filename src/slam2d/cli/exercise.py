@@ -98,7 +98,7 @@ def check_case(fn: AugmentFn, ref: AugmentFn, case: Case, atol: float = 1e-9) ->
     try:
         got = fn(case.mu.copy(), case.P.copy(), case.z_range, case.z_bearing, case.R_obs.copy())
         mu_new, P_new = (np.asarray(a, dtype=np.float64) for a in got)
-    except Exception as e:
+    except (Exception, SystemExit) as e:  # sys.exit() in the learner's function is a failed case, not our exit
         return Verdict(case.name, False, f"raised {type(e).__name__}: {e}")
     if mu_new.shape != (n + 2,) or P_new.shape != (n + 2, n + 2):
         return Verdict(case.name, False, f"shapes: got mu {mu_new.shape} and P {P_new.shape}, expected "
@@ -141,7 +141,7 @@ def load_learner(path: str | Path) -> AugmentFn:
     mod = importlib.util.module_from_spec(spec)
     try:
         spec.loader.exec_module(mod)
-    except Exception as e:
+    except (Exception, SystemExit) as e:  # a file that calls sys.exit() on import must not end the check as a pass
         raise ValueError(f"{p}: importing it failed: {type(e).__name__}: {e}") from None
     fn = getattr(mod, "augment_state", None)
     if not callable(fn):

@@ -15,8 +15,16 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from slam2d.cli.common import add_set_argument, check_outputs, overrides_from, print_table, write_json
+from slam2d.cli.common import (
+    add_set_argument,
+    check_number,
+    check_outputs,
+    overrides_from,
+    print_table,
+    write_json,
+)
 from slam2d.config import check_positive, to_dict, with_overrides
+from slam2d.io.atomic import atomic_path, check_output
 
 
 @dataclass(frozen=True)
@@ -158,11 +166,15 @@ def _breakit(seeds: Sequence[int], overrides: Mapping[str, str]) -> ExperimentOu
     from slam2d.lab.breakit import breakit_experiment
 
     cfg = with_overrides(BreakitExperimentConfig(), dict(overrides))
+    if cfg.figure:
+        check_output(cfg.figure, "--set figure")  # before the runs, not after them
     rows = breakit_experiment(cfg.estimators, tuple(seeds), cfg.scenario, cfg.steps or None)
     if cfg.figure:
         from slam2d.viz.figures import save_breakit_figure
 
-        print(f"wrote {save_breakit_figure(rows, cfg.figure)}")
+        with atomic_path(cfg.figure) as tmp:  # a failed drawing leaves the previous figure as it was
+            save_breakit_figure(rows, tmp)
+        print(f"wrote {cfg.figure}")
     cols = ["estimator", "condition", "runs", "ate_mean_m", "ate_std_m", "map_rmse_mean_m"]
     return ExperimentOutput(rows, cols, {"config": to_dict(cfg), "seeds": list(seeds), "rows": rows},
                             f"break-it on '{cfg.scenario}' over {len(seeds)} seeds (known association)")
@@ -220,6 +232,7 @@ def cmd(args: argparse.Namespace) -> int:
         raise ValueError(f"--seeds must be >= 1 (got {args.seeds})")
     if args.seeds > 100_000:
         raise ValueError(f"--seeds must be <= 100000 (got {args.seeds})")
+    check_number("--first-seed", args.first_seed, low=0, high=2**63 - args.seeds)  # every seed in 0..2**63-1
     check_outputs(args, [], [("--json", args.json_out)])
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     out = EXPERIMENTS[args.name](seeds, overrides_from(args))

@@ -126,6 +126,7 @@ def cmd_drone(args: argparse.Namespace) -> int:
     check_number("--drone", args.drone, low=0, high=65535)
     check_number("--minutes", args.minutes, low=0, low_open=True, high=24 * 60)
     check_number("--rate", args.rate, low=0)
+    check_number("--seed", args.seed, low=0, high=(2**63 - 1 - 65535) // 1000)  # drone K simulates seed*1000+K
     if args.scenario not in SCENARIOS:
         raise ValueError(f"--scenario: unknown scenario {args.scenario!r}; valid: {sorted(SCENARIOS)}")
     check_outputs(args, [], [("--json", args.json)])

@@ -14,10 +14,11 @@ from typing import Any
 
 import numpy as np
 
-from slam2d.cli.common import add_set_argument, overrides_from
+from slam2d.cli.common import add_set_argument, check_number, overrides_from
 from slam2d.config import to_dict, with_overrides
+from slam2d.io.atomic import check_output
 from slam2d.maps.occupancy import OccupancyConfig
-from slam2d.maps.store import MapStore, sim_world_id, snapshot_from_truth
+from slam2d.maps.store import MapFormatError, MapStore, sim_world_id, snapshot_from_truth
 from slam2d.sim.scenarios import SCENARIOS, ScenarioConfig
 from slam2d.sim.simulator import simulate
 
@@ -66,14 +67,35 @@ def _world_id(scenario: str, seed: int, overrides: dict[str, str]) -> str:
     return sim_world_id({"scenario": scenario, "seed": seed, "config": to_dict(cfg)})
 
 
+def _check_save_target(args: argparse.Namespace, scenario: ScenarioConfig) -> None:
+    """Refuse a bad ``--out`` before the simulation and the run (``MapStore.write`` checks again when it writes):
+    a directory or unwritable place, a missing folder, or (without --replace-other-world) a file that is not a
+    slam2d map or holds another world's map."""
+    from slam2d.cli.map_session import check_map_files, world_of
+
+    path = check_output(args.out, "--out")
+    if not path.parent.is_dir():
+        raise MapFormatError(f"{path}: cannot write a map there ({path.parent} does not exist)")
+    if path.exists() and not args.replace_other_world:
+        try:
+            check_map_files(None, args.out, world_of(scenario, args.seed))
+        except MapFormatError as e:
+            raise MapFormatError(str(e) if "refusing" in str(e) else f"{e}; refusing to overwrite it") from None
+
+
 def cmd_save(args: argparse.Namespace) -> int:
+    check_number("--seed", args.seed, low=0, high=2**63 - 1)
+    check_number("--keyframe-every-m", args.keyframe_every_m, low=0, low_open=True)
+    check_number("--keyframe-every-deg", args.keyframe_every_deg, low=0, low_open=True)
+    check_number("--resolution", args.resolution, low=0, low_open=True)
     if args.source == "lidar":
         return _save_from_lidar(args)
     cfg = with_overrides(ScenarioConfig(name=args.scenario), overrides_from(args))
+    occupancy = OccupancyConfig(resolution_m=args.resolution)
+    _check_save_target(args, cfg)
     log = simulate(cfg, args.seed)
     snap = snapshot_from_truth(log, keyframe_every_m=args.keyframe_every_m,
-                               keyframe_every_rad=float(np.deg2rad(args.keyframe_every_deg)),
-                               occupancy=OccupancyConfig(resolution_m=args.resolution))
+                               keyframe_every_rad=float(np.deg2rad(args.keyframe_every_deg)), occupancy=occupancy)
     path = MapStore.write(args.out, snap, created_by="slam2d map save (from truth)",
                           replace_other_world=args.replace_other_world)
     c = snap.counts()
@@ -85,7 +107,7 @@ def cmd_save(args: argparse.Namespace) -> int:
 
 def _save_from_lidar(args: argparse.Namespace) -> int:
     """``--source lidar``: the lidar session (cold start) over the simulated scenario; its map is saved."""
-    from slam2d.cli.map_session import check_map_files, world_of
+    from slam2d.cli.map_session import world_of
     from slam2d.config import split_overrides
     from slam2d.graph.lidar_session import LidarSession, LidarSessionConfig
     from slam2d.lab.registry import get_spec, make_config
@@ -98,8 +120,7 @@ def _save_from_lidar(args: argparse.Namespace) -> int:
     scen_over, est_over = split_overrides(rest, ScenarioConfig, get_spec("lidar").config_cls)
     cfg = with_overrides(ScenarioConfig(name=args.scenario), scen_over)
     world = world_of(cfg, args.seed)
-    if not args.replace_other_world:
-        check_map_files(None, args.out, world)  # refuse a bad target before the run
+    _check_save_target(args, cfg)  # refuse a bad target before the run
     log = simulate(cfg, args.seed)
     lidar = make_config("lidar", {**est_over, **est_only}, log.metadata, has_ids=False)
     est = LidarSession(LidarSessionConfig(lidar=lidar, save_resolution_m=args.resolution), world_id=world,

@@ -13,6 +13,7 @@ from slam2d.graph import FactorGraph, OptimizerConfig, Values, optimize
 from slam2d.graph.initialization import chordal_poses, initial_points
 from slam2d.io import FORMATS, read_graph, write_g2o
 from slam2d.io.atomic import atomic_path
+from slam2d.io.g2o import point_id_shift
 
 
 def register(sub: Any) -> None:
@@ -61,6 +62,10 @@ def cmd(args: argparse.Namespace) -> int:
     kernel, param = _kernel(args.robust)
     check_outputs(args, [args.input], [("--out", args.out), ("--json", args.json)])
     gf = read_graph(args.input, args.format)
+    try:  # g2o has one id space: landmark ids that are also pose ids move (or fail here, before the work)
+        shift = point_id_shift(gf.values.pose_keys, gf.values.point_keys)
+    except ValueError as e:
+        raise ValueError(f"{args.input}: {e}") from None
     cfg = OptimizerConfig(method=args.solver, max_iterations=args.max_iterations, robust_kernel=kernel,
                           robust_param=param, linear_solver=args.linear_solver,
                           lambda_initial_factor=args.lambda_initial)
@@ -82,11 +87,14 @@ def cmd(args: argparse.Namespace) -> int:
         "solve_s": s.solve_s, "linear_solver": s.linear_solver, "poses": int(out.pose_keys.size),
         "landmarks": int(out.point_keys.size), "factors": gf.graph.num_factors,
         "components": s.num_components, "gauge_pose_keys": s.gauge_pose_keys,
-        "skipped_lines": gf.skipped,
+        "skipped_lines": gf.skipped, "point_id_offset": shift,
     }
     print(f"{args.input}: {record['poses']} poses, {record['landmarks']} landmarks, {record['factors']} factors; "
           f"chi2 {s.chi2_initial:.6g} -> {s.chi2_final:.10g} in {s.iterations} iterations ({s.termination}), "
           f"{s.solve_s:.3f} s")
+    if shift:
+        print(f"note: landmark ids share numbers with pose ids; written as VERTEX_XY id {shift:+d} (g2o has one id "
+              "space)", file=sys.stderr)
     if s.num_components > 1:
         print(f"note: {s.num_components} disconnected components; held poses {s.gauge_pose_keys}", file=sys.stderr)
     # both outputs or neither: the graph goes to a temporary file that is renamed only after the JSON is written

@@ -8,7 +8,8 @@ uses one id space; slam2d keeps the two namespaces, so the ids are kept as they 
 ``slam2d.io._text``.
 
 Writing: poses as VERTEX_SE2, points as VERTEX_XY. Because g2o has one id space, point ids that collide with a
-pose id are shifted by ``max(pose id) + 1`` (all points, so the mapping is one offset); factors without a g2o
+pose id are shifted by ``max(pose id) + 1`` (all points, so the mapping is one offset; below the poses when that
+would leave int64; see :func:`point_id_shift`; ``write_g2o`` returns the offset); factors without a g2o
 tag (range-bearing, bearing, range, position, point prior) raise ValueError.
 """
 
@@ -34,6 +35,8 @@ from slam2d.io._text import (
 )
 from slam2d.io.atomic import atomic_write
 
+_INT64_MAX = 2**63 - 1  # the readers' id range is [-_INT64_MAX, _INT64_MAX]
+
 SPEC = {
     "VERTEX_SE2": (1, 3),
     "VERTEX_XY": (1, 2),
@@ -47,6 +50,8 @@ def read_g2o(path: str | os.PathLike[str], *, on_unknown: str = "warn") -> Graph
     """Read a 2D g2o file (see module doc). Raises GraphFormatError naming file:line and the token."""
     name = os.fspath(path)
     rows, skipped = tokenize(path, read_lines(path), SPEC, on_unknown, variable={"FIX": 1})
+    if not any(r.lines.size for r in rows.values()):  # empty, blank or only comments: no graph to optimise
+        raise GraphFormatError(f"{name}: no g2o lines (the file is empty or holds only comments)")
     vs, vx = rows["VERTEX_SE2"], rows["VERTEX_XY"]
     es, ex, ep = rows["EDGE_SE2"], rows["EDGE_SE2_XY"], rows["EDGE_SE2_PRIOR"]
     check_duplicates(name, "VERTEX_SE2", vs.ints[:, 0], vs.lines)
@@ -102,15 +107,31 @@ def read_g2o(path: str | os.PathLike[str], *, on_unknown: str = "warn") -> Graph
     return GraphFile(g, values, "g2o", np.unique(fixed), guess, skipped)
 
 
+def point_id_shift(pose_keys: np.ndarray, point_keys: np.ndarray) -> int:
+    """The offset :func:`write_g2o` adds to every point id: 0 unless a point id is also a pose id, else
+    ``max(pose id) + 1 - min(0, min(point id))``; when that would leave int64 (which the readers refuse), the points
+    go below the poses instead (``min(pose id) - 1 - max(point id)``); ValueError when neither fits."""
+    if not (point_keys.size and pose_keys.size and np.intersect1d(pose_keys, point_keys).size):
+        return 0
+    lo, hi = int(point_keys.min()), int(point_keys.max())
+    up = int(pose_keys.max()) + 1 - min(0, lo)
+    if hi + up <= _INT64_MAX:
+        return up
+    down = int(pose_keys.min()) - 1 - hi
+    if lo + down >= -_INT64_MAX:
+        return down
+    raise ValueError("write_g2o: the point ids cannot be moved clear of the pose ids within int64 (g2o has one id "
+                     "space); renumber the landmarks")
+
+
 def write_g2o(path: str | os.PathLike[str], graph: FactorGraph, values: Values, *,
-              fixed_pose_keys: np.ndarray | None = None) -> None:
-    """Write poses, points and between / point / prior factors as a g2o file (see module doc)."""
+              fixed_pose_keys: np.ndarray | None = None) -> int:
+    """Write poses, points and between / point / prior factors as a g2o file (see module doc); returns the offset
+    added to the point ids (:func:`point_id_shift`, 0 when they were kept)."""
     unsupported = [k for k in graph.kinds() if k not in ("between", "point", "prior")]
     if unsupported:
         raise ValueError(f"write_g2o: factor types {unsupported} have no g2o 2D tag")
-    shift = 0
-    if values.point_keys.size and values.pose_keys.size and np.intersect1d(values.pose_keys, values.point_keys).size:
-        shift = int(values.pose_keys.max()) + 1 - int(min(0, values.point_keys.min()))
+    shift = point_id_shift(values.pose_keys, values.point_keys)
     out: list[str] = []
     for k, p in zip(values.pose_keys, values.poses, strict=True):
         out.append(f"VERTEX_SE2 {int(k)} {fmt(p[0])} {fmt(p[1])} {fmt(p[2])}")
@@ -138,3 +159,4 @@ def write_g2o(path: str | os.PathLike[str], graph: FactorGraph, values: Values, 
         out.append(f"EDGE_SE2_PRIOR {int(b.keys[0, f])} {nums}")
     with atomic_write(path) as fh:
         fh.write("\n".join(out) + ("\n" if out else ""))
+    return shift

@@ -50,6 +50,8 @@ def read_isam(path: str | os.PathLike[str], *, on_unknown: str = "warn") -> Grap
     """Read an iSAM text graph (see module doc)."""
     name = os.fspath(path)
     rows, skipped = tokenize(path, read_lines(path), SPEC, on_unknown)
+    if not any(r.lines.size for r in rows.values()):  # empty, blank or only comments: no graph to optimise
+        raise GraphFormatError(f"{name}: no iSAM lines (the file is empty or holds only comments)")
     od, ed, lm = rows["ODOMETRY"], rows["EDGE2"], rows["LANDMARK"]
     order = np.argsort(np.concatenate([od.lines, ed.lines]), kind="stable")
     ints = np.concatenate([od.ints, ed.ints])[order]

@@ -41,6 +41,8 @@ def read_toro(path: str | os.PathLike[str], *, on_unknown: str = "warn") -> Grap
     """Read a TORO 2D graph; information converted to slam2d's (g2o) error convention."""
     name = os.fspath(path)
     rows, skipped = tokenize(path, read_lines(path), SPEC, on_unknown)
+    if not any(r.lines.size for r in rows.values()):  # empty, blank or only comments: no graph to optimise
+        raise GraphFormatError(f"{name}: no TORO lines (the file is empty or holds only comments)")
     v, e = rows["VERTEX2"], rows["EDGE2"]
     check_duplicates(name, "VERTEX2", v.ints[:, 0], v.lines)
     loop = e.ints[:, 0] == e.ints[:, 1]
