@@ -60,7 +60,12 @@ def test_expansion_is_the_product_of_estimators_scenarios_grid_and_seeds(tmp_pat
     ("estimators = ['dead-reckoning']\n[grid]\nsteps = 5\n", r"grid\.steps must be a non-empty list"),
     ("estimators = ['nope']\n", r"'estimators' has unknown name\(s\) \['nope'\]"),
     ("estimators = ['dead-reckoning']\nscenarios = ['moon']\n", r"'scenarios' has unknown name\(s\) \['moon'\]"),
-    ("estimators = ['dead-reckoning']\nseeds = 0\n", r"'seeds' count must be >= 1"),
+    ("estimators = ['dead-reckoning']\nseeds = 0\n", r"'seeds' count must be in 1\.\.100000"),
+    # a typo in a size is refused at once (a billion seeds hung the dry run while the plan was expanded)
+    ("estimators = ['dead-reckoning']\nseeds = 1000000000\n", r"'seeds' count must be in 1\.\.100000"),
+    ("estimators = ['dead-reckoning']\nseeds = {start = 9223372036854775800, count = 9}\n", r"seeds are 64-bit"),
+    ("estimators = ['dead-reckoning']\n[grid]\nsteps = " + str(list(range(1, 10002))) + "\n",
+     r"10001 configurations x 1 seeds is more than a sweep may hold"),
     ("estimators = ['dead-reckoning']\nseeds = {start = 1, cnt = 2}\n", r"unknown key\(s\) \['cnt'\] in 'seeds'"),
     ("scenarios = ['room']\n", r"missing required key 'estimators'"),
     ("estimators = ['dead-reckoning']\n[set]\nname = 'loop'\n", r"set\.name .*not allowed"),

@@ -56,6 +56,9 @@ from slam2d.sim.scenarios import ScenarioConfig
 PLAN_FILE = "plan.json"
 LOCK_FILE = ".lock"
 MAX_SWEEP_FILE_BYTES = 16 * 2**20
+#: a sweep's size: seeds, configurations (estimators x scenarios x configs x grid) and runs (their product) at most;
+#: a typo such as ``seeds = 1000000000`` is refused at once instead of hanging while the plan is expanded
+MAX_SWEEP_SEEDS, MAX_SWEEP_CONFIGS, MAX_SWEEP_RUNS = 100_000, 10_000, 1_000_000
 
 TOP_KEYS = {
     "name": "a label for the sweep (string)",
@@ -152,23 +155,29 @@ def _parse_seeds(v: Any, source: str) -> tuple[int, ...]:
     if isinstance(v, bool):
         raise ValueError(f"{source}: 'seeds' must be a count, a list of integers or {{start, count}} (got {v!r})")
     if isinstance(v, int):
-        if v < 1:
-            raise ValueError(f"{source}: 'seeds' count must be >= 1 (got {v})")
+        if not 1 <= v <= MAX_SWEEP_SEEDS:
+            raise ValueError(f"{source}: 'seeds' count must be in 1..{MAX_SWEEP_SEEDS} (got {v})")
         return tuple(range(v))
     if isinstance(v, list):
         if not v or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0 for s in v):
             raise ValueError(f"{source}: 'seeds' list must be non-empty non-negative integers (got {v!r})")
         if len(set(v)) != len(v):
             raise ValueError(f"{source}: 'seeds' list has duplicates: {v!r}")
+        if len(v) > MAX_SWEEP_SEEDS or max(v) > 2**63 - 1:
+            raise ValueError(f"{source}: 'seeds' list must hold at most {MAX_SWEEP_SEEDS} seeds below 2**63")
         return tuple(v)
     if isinstance(v, Mapping):
         unknown = sorted(set(v) - {"start", "count"})
         if unknown:
             raise ValueError(f"{source}: unknown key(s) {unknown} in 'seeds'; valid keys: ['count', 'start']")
-        start, count = v.get("start", 0), v.get("count")
+        start, count = v.get("start", 0), v.get("count", 0)
         for n, x in (("seeds.start", start), ("seeds.count", count)):
             if not isinstance(x, int) or isinstance(x, bool) or x < (1 if n == "seeds.count" else 0):
                 raise ValueError(f"{source}: '{n}' must be an integer >= {1 if n == 'seeds.count' else 0} (got {x!r})")
+        if count > MAX_SWEEP_SEEDS:
+            raise ValueError(f"{source}: 'seeds.count' must be <= {MAX_SWEEP_SEEDS} (got {count})")
+        if start + count > 2**63:
+            raise ValueError(f"{source}: 'seeds.start' + 'seeds.count' must be <= 2**63 (seeds are 64-bit)")
         return tuple(range(start, start + count))
     raise ValueError(f"{source}: 'seeds' must be a count, a list of integers or {{start, count}} (got {v!r})")
 
@@ -235,6 +244,10 @@ def parse_sweep(data: Mapping[str, Any], source: str = "sweep") -> SweepPlan:
                 raise ValueError(f"{source}: key '{k}' is in both grid and configs[{i}]; give it in one place")
 
     grid_keys = sorted(grid)
+    configs = len(estimators) * len(scenarios) * len(cfg_list) * math.prod(len(grid[k]) for k in grid_keys)
+    if configs > MAX_SWEEP_CONFIGS or configs * len(seeds) > MAX_SWEEP_RUNS:
+        raise ValueError(f"{source}: {configs} configurations x {len(seeds)} seeds is more than a sweep may hold "
+                         f"(at most {MAX_SWEEP_CONFIGS} configurations and {MAX_SWEEP_RUNS} runs); split it")
     specs: list[RunSpec] = []
     seen: set[str] = set()
     for est in estimators:
