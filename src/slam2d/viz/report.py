@@ -20,6 +20,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from slam2d.eval.consistency import chi2_band, monte_carlo_consistency
+from slam2d.io.atomic import atomic_write
 from slam2d.lab.sweep import ResultStore
 
 
@@ -180,6 +181,10 @@ def build_report(directory: str | Path, out: str | Path | None = None) -> Path:
     found = False
 
     records, problems = ResultStore(d).scan()
+    if problems and not records and not (d / "scaling.json").exists() and not (d / "consistency.json").exists():
+        p = problems[0]  # nothing usable at all: say why instead of writing an empty report
+        raise ValueError(f"{d / 'results.jsonl'}:{p.line}: {p.reason} (no usable run in it; "
+                         f"{len(problems)} unusable lines)")
     if records or problems:
         found = True
         groups: dict[str, list[dict[str, Any]]] = defaultdict(list)
@@ -249,11 +254,15 @@ def build_report(directory: str | Path, out: str | Path | None = None) -> Path:
             parts.append(f'<p><img src="{img}" alt="NEES with band"></p>')
 
     if not found:
+        if (d / "results.jsonl").exists():
+            raise ValueError(f"{d / 'results.jsonl'}: holds no runs yet (and {d} has no scaling.json or "
+                             "consistency.json to report)")
         raise FileNotFoundError(f"{d} has no results.jsonl, scaling.json or consistency.json to report")
     page = out_dir / "index.html"
-    page.write_text("<!doctype html><html><head><meta charset='utf-8'><title>slam2d report</title>"
-                    f"<link rel='icon' href='data:,'><style>{CSS}</style></head><body>"
-                    + "\n".join(parts) + "</body></html>\n")
+    with atomic_write(page) as fh:  # a report being rewritten is never seen half-written
+        fh.write("<!doctype html><html><head><meta charset='utf-8'><title>slam2d report</title>"
+                 f"<link rel='icon' href='data:,'><style>{CSS}</style></head><body>"
+                 + "\n".join(parts) + "</body></html>\n")
     return page
 
 
