@@ -19,6 +19,7 @@ Decay: after each update, cells that the scan did NOT observe move toward "unkno
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -104,9 +105,12 @@ class OccupancyGrid:
             raise ValueError(f"OccupancyGrid bounds must have xmax > xmin and ymax > ymin (got {bounds})")
         res = self.config.resolution_m
         self.origin = np.array([x0, y0])
-        self.shape = (int(np.ceil((y1 - y0) / res)), int(np.ceil((x1 - x0) / res)))
-        if self.shape[0] * self.shape[1] > 50_000_000:
-            raise ValueError(f"OccupancyGrid of {self.shape} cells is too large; raise resolution_m")
+        rows, cols = (y1 - y0) / res, (x1 - x0) / res
+        # the cell count in floats first, so that bounds of 1e300 m give a short message, not a 300-digit shape
+        if not (math.isfinite(rows * cols) and math.ceil(rows) * math.ceil(cols) <= 50_000_000):
+            raise ValueError(f"OccupancyGrid of {rows:.3g} x {cols:.3g} cells (bounds {x1 - x0:.3g} x {y1 - y0:.3g} "
+                             f"m at {res} m) is too large (50 million at most); raise resolution_m")
+        self.shape = (math.ceil(rows), math.ceil(cols))
         self.logodds = np.zeros(self.shape, dtype=np.float64)
         self.observed = np.zeros(self.shape, dtype=bool)
         self.updates = 0
