@@ -162,6 +162,12 @@ def test_dataset_opt_reaches_the_carmen_reader_and_dataset_path_is_refused(
         assert msg in one_line_error(capsys)
     assert main(["run", "--dataset", str(log), "--dataset-path", str(tmp_path)]) == 2
     assert "--dataset-path does not apply to a CARMEN log" in one_line_error(capsys)
+    # the alias takes the same options
+    out = tmp_path / "m.png"
+    assert main(["lidar", "--dataset", str(log), "--dataset-opt", "nope=1", "--out", str(out)]) == 2
+    assert "unknown option(s) ['nope'] for a CARMEN log" in one_line_error(capsys)
+    assert main(["lidar", "--dataset", str(log), "--dataset-opt", "on_error=skip", "--out", str(out)]) == 0
+    assert "log.clf:8: truncated FLASER" in capsys.readouterr().err and out.exists()
 
 
 def test_invalid_beam_count_matches_the_lines_it_names(tmp_path: Path) -> None:

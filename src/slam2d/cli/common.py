@@ -74,3 +74,23 @@ def check_number(name: str, value: float | int | None, *, low: float | None = No
         lo = "" if low is None else f"{'>' if low_open else '>='} {low:g}"
         hi = "" if high is None else f"<= {high:g}"
         raise ValueError(f"{name} must be a finite number {' and '.join(x for x in (lo, hi) if x)} (got {value!r})")
+
+
+def dataset_options(pairs: Sequence[str]) -> dict[str, Any]:
+    """``--dataset-opt KEY=VALUE`` (repeatable) as loader options: each value an int, float, true/false, none, else
+    the string itself."""
+    return {k: _literal(v) for k, v in parse_set_args(pairs).items()}
+
+
+def _literal(text: str) -> Any:
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    if low == "none":
+        return None
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    return text

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from slam2d.cli.common import add_force_argument
+from slam2d.cli.common import add_force_argument, dataset_options
 from slam2d.io.atomic import atomic_path, atomic_write
 from slam2d.log import Log
 
@@ -37,6 +37,9 @@ def register(sub: Any) -> None:
     p.add_argument("--relations", default=None, help="relations file (default: <log>.relations if present)")
     p.add_argument("--path", action="store_true", help="draw the estimated trajectory on the map")
     p.add_argument("--data-dir", default=None, help="directory holding the dataset folders (overrides SLAM2D_DATA)")
+    p.add_argument("--dataset-opt", action="append", default=[], metavar="KEY=VALUE",
+                   help="a CARMEN reader option (repeatable): max_range_m=30, on_error=skip, backwards_stamps=skip, "
+                        "max_lines=N")
     p.add_argument("--json", default=None, metavar="OUT", help="write the result record as JSON")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a LidarSLAMConfig field (repeatable), e.g. --set keyframe_distance_m=0.2")
@@ -216,7 +219,7 @@ def cmd(args: argparse.Namespace) -> int:
     out = args.out or f"{Path(source).name.split('.')[0]}_map.png"
     check_outputs(args, [source, find_relations(source, args.relations)],
                   [("--out", out), ("--json", args.json), ("--trajectory", args.trajectory)])
-    log = load_laser_log(args.dataset, args.data_dir)
+    log = load_laser_log(args.dataset, args.data_dir, options=dataset_options(args.dataset_opt))
     relations = load_relations(log, args.relations)
     problems = report_log_problems(log)
     overrides = {f"estimator.{k}": v for k, v in overrides_from(args).items()}

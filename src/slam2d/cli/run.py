@@ -12,12 +12,12 @@ from slam2d.cli.common import (
     add_set_argument,
     check_number,
     check_outputs,
+    dataset_options,
     overrides_from,
     print_table,
     write_json,
 )
 from slam2d.cli.lidar import find_relations, laser_outputs, load_laser_log, load_relations, report_log_problems
-from slam2d.config import parse_set_args
 from slam2d.eval.gps import gps_ate
 from slam2d.io.carmen import is_carmen_source, resolve_carmen
 from slam2d.io.datasets import DATASETS, load_dataset
@@ -94,21 +94,6 @@ def _robot(text: str) -> int | str:
         raise argparse.ArgumentTypeError(f"expected a robot number or 'all', got {text!r}") from None
 
 
-def _literal(text: str) -> Any:
-    """A --dataset-opt value: int, float, true/false, none, else the string itself."""
-    low = text.lower()
-    if low in ("true", "false"):
-        return low == "true"
-    if low == "none":
-        return None
-    for cast in (int, float):
-        try:
-            return cast(text)
-        except ValueError:
-            pass
-    return text
-
-
 def cmd(args: argparse.Namespace) -> int:
     log = Log.load(args.log) if args.log else None
     if args.seed is None:  # a saved log's own seed (its metadata), else 0
@@ -132,12 +117,12 @@ def cmd(args: argparse.Namespace) -> int:
     problems: dict[str, int] = {}
     relations = None
     if carmen is not None:
-        opts = {k: _literal(v) for k, v in parse_set_args(args.dataset_opt).items()}
+        opts = dataset_options(args.dataset_opt)
         log = load_laser_log(args.dataset, args.data_dir, args.max_steps, args.max_time, opts)
         relations = load_relations(log)  # read before the run: a bad file fails now, not after it
         problems = report_log_problems(log)
     elif args.dataset:
-        opts = {k: _literal(v) for k, v in parse_set_args(args.dataset_opt).items()}
+        opts = dataset_options(args.dataset_opt)
         log = load_dataset(args.dataset, args.dataset_path, args.robot, data_dir_override=args.data_dir,
                            max_steps=args.max_steps, max_time_s=args.max_time, **opts)
     elif args.dataset_path or args.max_steps or args.max_time or args.dataset_opt:
@@ -222,7 +207,7 @@ def _cmd_multi(args: argparse.Namespace) -> int:
                          f"{'|'.join(MULTI_ESTIMATORS)} (got --robot {args.robot} --estimator {args.estimator})")
     if args.overrides or args.no_loop_closure:
         raise ValueError("--set and --no-loop-closure do not apply to multi-robot runs")
-    opts = {k: _literal(v) for k, v in parse_set_args(args.dataset_opt).items()}
+    opts = dataset_options(args.dataset_opt)
     log = load_dataset(args.dataset, args.dataset_path, robot="all", data_dir_override=args.data_dir,
                        max_steps=args.max_steps, max_time_s=args.max_time, **opts)
     res = run_multi(log, estimator=args.estimator, unknown_starts=args.unknown_starts,
