@@ -43,10 +43,14 @@ from slam2d.geometry import se2
 from slam2d.geometry.angles import wrap_angle
 from slam2d.graph.graph import FactorGraph, Values
 from slam2d.graph.lidar import LidarSLAMConfig
+from slam2d.graph.linear import SolverError
 from slam2d.graph.optimizer import OptimizerConfig, optimize
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+#: a solve whose result holds a value beyond this (m, rad) diverged and is not taken (drones send at most 1e6)
+MAX_SOLVED = 1e12
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -147,6 +151,7 @@ class JointGraph:
         self._loops_pending = False
         self._last_search: dict[int, int] = {}
         self.solves: list[SolveRecord] = []
+        self.failed_solves = 0  # solves that left the estimate unchanged (see solve)
         self.tile_version: dict[tuple[int, int], int] = {}
         self._rasters: dict[tuple[int, int], tuple[int, bytes]] = {}
         self._version = 0
@@ -372,13 +377,27 @@ class JointGraph:
             g.add_point_prior(np.asarray([s for s, _ in known]), np.asarray([xy for _, xy in known]),
                               np.repeat(np.eye(2)[None] / cfg.survey_sigma_m**2, len(known), axis=0))
         before = self.poses.copy()
-        out, _ = optimize(g, Values(np.arange(len(self.poses)), self.poses, np.arange(len(self.markers)),
-                                    self.markers),
-                          OptimizerConfig(method="gn", max_iterations=iterations or cfg.solve_iterations,
-                                          gauge="none"))
-        self.poses = np.asarray(out.poses, np.float64).copy()
-        if len(self.markers):
-            self.markers[out.point_keys] = out.points
+        start = Values(np.arange(len(self.poses)), self.poses, np.arange(len(self.markers)), self.markers)
+        out = None
+        # Gauss-Newton; if it cannot factor the system (numerically singular: drones' values that pass every
+        # per-message check can still combine badly), Levenberg-Marquardt from the same start, and if that fails
+        # too, or leaves non-finite or absurd values, the estimate stays as it was: the server must not die on a
+        # solve (nor on tile indices of poses beyond 64-bit integers)
+        for method in ("gn", "lm"):
+            try:
+                out, _ = optimize(g, start, OptimizerConfig(method=method, gauge="none",
+                                                            max_iterations=iterations or cfg.solve_iterations))
+            except SolverError:
+                continue
+            if all(np.all(np.abs(a) <= MAX_SOLVED) for a in (out.poses, out.points)):  # also False for nan
+                break
+            out = None
+        if out is None:
+            self.failed_solves += 1
+        else:
+            self.poses = np.asarray(out.poses, np.float64).copy()
+            if len(self.markers):
+                self.markers[out.point_keys] = out.points
         moved = np.flatnonzero(np.hypot(*(self.poses[:, :2] - before[:, :2]).T) > 0.02)
         for k in moved.tolist():
             self._touch(k)

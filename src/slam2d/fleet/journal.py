@@ -46,7 +46,18 @@ CREATE TABLE IF NOT EXISTS loops (id INTEGER PRIMARY KEY, drone_a INTEGER NOT NU
 
 
 class JournalError(ValueError):
-    """The file is not a fleet journal (or a newer one)."""
+    """The file is not a fleet journal (or a newer one), is corrupt, or cannot be opened for writing."""
+
+
+def _why(e: sqlite3.Error, existed: bool) -> str:
+    text = str(e).lower()
+    if "readonly" in text or "read-only" in text:
+        return "cannot write the fleet map database (read-only file or directory)"
+    if not existed:
+        return "cannot create the fleet map database there"
+    if isinstance(e, sqlite3.DatabaseError) and ("malformed" in text or "not a database" in text):
+        return "not a fleet map database, or a corrupt one"
+    return "cannot open the fleet map database"
 
 
 @dataclass(frozen=True)
@@ -76,28 +87,39 @@ class Journal:
         self.path = Path(path)
         if self.path.is_dir():
             raise IsADirectoryError(21, "is a directory, not a map database", str(self.path))
+        existed = self.path.exists()
+        con: sqlite3.Connection | None = None
         try:
-            self.db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
-            self.db.execute("PRAGMA journal_mode=WAL")
-            self.db.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
+            self.db = con = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
             app = self.db.execute("PRAGMA application_id").fetchone()[0]
             ver = self.db.execute("PRAGMA user_version").fetchone()[0]
             tables = self.db.execute("SELECT count(*) FROM sqlite_master").fetchone()[0]
-        except sqlite3.DatabaseError as e:
-            raise JournalError(f"{self.path}: not a fleet map database ({e})") from None
-        if tables and app != APPLICATION_ID:
-            self.db.close()
-            raise JournalError(f"{self.path}: an SQLite file that is not a fleet map database (application_id "
-                               f"{app:#x}); give a new path")
-        if ver > SCHEMA_VERSION:
-            self.db.close()
-            raise JournalError(f"{self.path}: fleet schema {ver} is newer than this slam2d ({SCHEMA_VERSION})")
-        with self.transaction():
-            for statement in _SCHEMA.split(";"):
-                if statement.strip():
-                    self.db.execute(statement)
-            self.db.execute(f"PRAGMA application_id={APPLICATION_ID}")
-            self.db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+            if tables and app != APPLICATION_ID:
+                raise JournalError(f"{self.path}: an SQLite file that is not a fleet map database (application_id "
+                                   f"{app:#x}); give a new path")
+            if ver > SCHEMA_VERSION:
+                raise JournalError(f"{self.path}: fleet schema {ver} is newer than this slam2d ({SCHEMA_VERSION})")
+            # a torn or damaged file fails here, at start, not on the first delta that reads the damaged page
+            check = self.db.execute("PRAGMA quick_check(3)").fetchall() if tables else [("ok",)]
+            if check != [("ok",)]:
+                found = "; ".join(" ".join(str(r[0]).split()) for r in check)
+                raise JournalError(f"{self.path}: corrupt fleet map database (integrity check: {found}); restore a "
+                                   "copy or give a new path")
+            # only now switch to WAL: the switch is stored in the file, and a refused file must be left as it was
+            self.db.execute("PRAGMA journal_mode=WAL")
+            self.db.execute(f"PRAGMA synchronous={'FULL' if durable else 'NORMAL'}")
+            with self.transaction():
+                for statement in _SCHEMA.split(";"):
+                    if statement.strip():
+                        self.db.execute(statement)
+                self.db.execute(f"PRAGMA application_id={APPLICATION_ID}")
+                self.db.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
+        except (sqlite3.Error, JournalError) as e:
+            if con is not None:
+                con.close()
+            if isinstance(e, JournalError):
+                raise
+            raise JournalError(f"{self.path}: {_why(e, existed)} ({e})") from None
 
     def close(self) -> None:
         self.db.close()

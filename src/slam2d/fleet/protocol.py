@@ -42,6 +42,16 @@ MAX_MARKERS = 32  # marker sightings per keyframe
 MARKER_DTYPE = np.dtype([("id", "<u4"), ("x", "<i2"), ("y", "<i2"), ("sigma", "<u2")])
 MARKER_SCALE = 1000.0  # int16 millimetres: +-32 m
 SIGMA_SCALE = 1e4  # uint16 tenths of a millimetre: up to 6.5 m
+#: largest |value| of a pose, dock or edge component (m or rad) and of an information entry: finite numbers beyond
+#: these overflow the joint graph's composition and solve (inf, then NaN) after the delta was committed, and the
+#: server could neither go on nor restart on its journal. A drone's own values are orders of magnitude smaller.
+MAX_COORD = 1e6
+MAX_INFO = 1e12
+#: an edge information's smallest eigenvalue (a standard deviation of 1 km or 1000 rad: a drone's edges carry 1e2 and
+#: more) and smallest ratio of its eigenvalues (the joint graph refuses a numerically singular factor at 1e-13):
+#: weaker edges leave their keyframe numerically unconstrained and the joint solve fails
+MIN_INFO = 1e-6
+MIN_INFO_CONDITION = 1e-12
 
 
 class ProtocolError(ValueError):
@@ -82,12 +92,14 @@ def _int(msg: dict[str, Any], key: str, lo: int = 0, hi: int = 2**31) -> int:
     return x
 
 
-def _floats(x: Any, n: int, what: str) -> Array:
+def _floats(x: Any, n: int, what: str, bound: float | None = None, seq: int | None = None) -> Array:
     if not isinstance(x, list | tuple) or len(x) != n:
-        raise ProtocolError("garbled", f"{what} must be a list of {n} numbers")
+        raise ProtocolError("garbled", f"{what} must be a list of {n} numbers", seq)
     a = np.asarray([v if isinstance(v, int | float) and not isinstance(v, bool) else np.nan for v in x], np.float64)
     if not np.all(np.isfinite(a)):
-        raise ProtocolError("garbled", f"{what} must hold finite numbers")
+        raise ProtocolError("garbled", f"{what} must hold finite numbers", seq)
+    if bound is not None and np.abs(a).max() > bound:
+        raise ProtocolError("garbled", f"{what} must hold numbers within +-{bound:g}", seq)
     return a
 
 
@@ -122,7 +134,7 @@ def parse_hello(msg: dict[str, Any]) -> tuple[int, str, Array]:
     session = msg.get("session")
     if not isinstance(session, str) or not 1 <= len(session) <= 64:
         raise ProtocolError("garbled", "hello: 'session' must be a string of 1..64 characters")
-    return _int(msg, "drone", 0, 1 << 16), session, _floats(msg.get("dock"), 3, "hello: 'dock'")
+    return _int(msg, "drone", 0, 1 << 16), session, _floats(msg.get("dock"), 3, "hello: 'dock'", MAX_COORD)
 
 
 def parse_delta(msg: dict[str, Any]) -> Delta:
@@ -141,11 +153,11 @@ def parse_delta(msg: dict[str, Any]) -> Delta:
         if not isinstance(pts, bytes) or len(pts) % 4 or len(pts) > 4 * MAX_POINTS:
             raise ProtocolError("garbled", f"delta {seq}: keyframes[{i}].pts must be at most {MAX_POINTS} int16 "
                                            "pairs", seq)
-        stamp = _floats([k.get("stamp")], 1, f"delta {seq}: keyframes[{i}].stamp")[0]
+        stamp = _floats([k.get("stamp")], 1, f"delta {seq}: keyframes[{i}].stamp", seq=seq)[0]
         mk = k.get("mk", b"")
         check_markers(mk, f"delta {seq}: keyframes[{i}].mk", seq)
-        out_k.append(Keyframe(_int(k, "id"), float(stamp), _floats(k.get("pose"), 3, f"keyframes[{i}].pose"),
-                              desc, pts, mk))
+        pose = _floats(k.get("pose"), 3, f"delta {seq}: keyframes[{i}].pose", MAX_COORD, seq)
+        out_k.append(Keyframe(_int(k, "id"), float(stamp), pose, desc, pts, mk))
     ids = [k.id for k in out_k]
     if ids and ids != list(range(ids[0], ids[0] + len(ids))):
         raise ProtocolError("garbled", f"delta {seq}: keyframe ids must be consecutive (got {ids[:5]}...)", seq)
@@ -153,13 +165,15 @@ def parse_delta(msg: dict[str, Any]) -> Delta:
     for i, e in enumerate(edges):
         if not isinstance(e, dict):
             raise ProtocolError("garbled", f"delta {seq}: edges[{i}] must be a map", seq)
-        info = _floats(e.get("info"), 6, f"delta {seq}: edges[{i}].info")
-        if not np.all(np.linalg.eigvalsh(info_matrix(info)) > 0):
-            raise ProtocolError("garbled", f"delta {seq}: edges[{i}].info is not positive definite", seq)
+        info = _floats(e.get("info"), 6, f"delta {seq}: edges[{i}].info", MAX_INFO, seq)
+        ev = np.linalg.eigvalsh(info_matrix(info))
+        if not (ev[0] >= MIN_INFO and ev[0] > MIN_INFO_CONDITION * ev[-1]):
+            raise ProtocolError("garbled", f"delta {seq}: edges[{i}].info is not positive definite (eigenvalues at "
+                                           f"least {MIN_INFO:g} and {MIN_INFO_CONDITION:g} of the largest)", seq)
         a, b = _int(e, "a"), _int(e, "b")
         if a == b:
             raise ProtocolError("garbled", f"delta {seq}: edges[{i}] joins keyframe {a} to itself", seq)
-        out_e.append(Edge(a, b, _floats(e.get("z"), 3, f"delta {seq}: edges[{i}].z"), info))
+        out_e.append(Edge(a, b, _floats(e.get("z"), 3, f"delta {seq}: edges[{i}].z", MAX_COORD, seq), info))
     body = msgpack.packb([msg.get("keyframes"), msg.get("edges")], use_bin_type=True)
     return Delta(drone, seq, tuple(out_k), tuple(out_e), hashlib.sha256(body).hexdigest())
 

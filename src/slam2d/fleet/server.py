@@ -11,6 +11,7 @@ for a refused message, and a refusal goes to the sending client only.
 from __future__ import annotations
 
 import signal
+import sqlite3
 import threading
 import time
 from collections import Counter
@@ -22,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from slam2d.fleet.joint import JointConfig, JointGraph
-from slam2d.fleet.journal import Journal
+from slam2d.fleet.journal import Journal, JournalError
 from slam2d.fleet.protocol import Delta, ProtocolError, decode, encode, parse_delta, parse_hello
 
 Array = NDArray[np.float64]
@@ -56,14 +57,19 @@ class MapServer:
         self.by_identity: dict[bytes, int] = {}
         self.errors: Counter[str] = Counter()  # refusals by code (status reports them, so a run can say why)
         self.started = time.time()
-        for row in self.journal.drones():  # rebuild from what was committed
-            self.drones[row.drone] = _DroneState(row.session, row.acked_seq, row.keyframes)
-            self.joint.add_drone(row.drone, row.dock)
-            self.joint.add_keyframes(row.drone, self.journal.keyframes(row.drone), self.journal.edges(row.drone))
-        for lp in self.journal.loops():
-            self.joint.add_loop(lp)
-        if len(self.joint.poses):
-            self.joint.solve(10)
+        try:
+            for row in self.journal.drones():  # rebuild from what was committed
+                self.drones[row.drone] = _DroneState(row.session, row.acked_seq, row.keyframes)
+                self.joint.add_drone(row.drone, row.dock)
+                self.joint.add_keyframes(row.drone, self.journal.keyframes(row.drone), self.journal.edges(row.drone))
+            for lp in self.journal.loops():
+                self.joint.add_loop(lp)
+            if len(self.joint.poses):
+                self.joint.solve(10)
+        except (sqlite3.Error, ValueError, IndexError, KeyError) as e:  # rows a valid delta never makes: damage
+            self.journal.close()
+            raise JournalError(f"{db}: corrupt fleet map database ({type(e).__name__}: {e}); restore a copy or "
+                               "give a new path") from None
 
     def close(self) -> None:
         self.journal.close()
@@ -163,6 +169,13 @@ class MapServer:
             if max(e.a, e.b) >= known:
                 raise ProtocolError("unknown-keyframe", f"delta {d.seq}: edge {e.a}->{e.b} references keyframe "
                                                         f"{max(e.a, e.b)}, unknown (this drone has {known})", d.seq)
+        # a keyframe no edge ties to an earlier one is unconstrained: the joint solve would fail on it (after the
+        # commit, and again at every restart on the journal)
+        linked = {max(e.a, e.b) for e in d.edges}
+        for k in d.keyframes:
+            if k.id > 0 and k.id not in linked:
+                raise ProtocolError("unlinked-keyframe", f"delta {d.seq}: keyframe {k.id} comes with no edge from an "
+                                                         "earlier keyframe (send the odometry edge with it)", d.seq)
 
     def _ack(self, drone: int, seq: int, *, duplicate: bool) -> dict[str, Any]:
         st = self.drones[drone]
@@ -206,6 +219,7 @@ class MapServer:
         return {"type": "status", "drones": drones, "loops": loops, "errors": sum(self.errors.values()),
                 "errors_by_code": dict(self.errors), "markers": markers,
                 "solves": [[s.nodes, s.edges, round(s.seconds, 5)] for s in solves],
+                "failed_solves": self.joint.failed_solves,
                 "uptime_s": round(now - self.started, 1)}
 
     # ------------------------------------------------------------------ transport

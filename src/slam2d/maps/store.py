@@ -26,6 +26,7 @@ import datetime
 import hashlib
 import json
 import os
+import secrets
 import sqlite3
 import zlib
 from collections.abc import Mapping
@@ -195,7 +196,14 @@ def _blob(a: NDArray[Any], dtype: type) -> bytes:
 
 
 def _unblob(b: bytes, dtype: type, shape: tuple[int, ...]) -> NDArray[Any]:
-    return np.frombuffer(zlib.decompress(b), dtype=dtype).reshape(shape).copy()
+    """The array of a blob, decompressed no further than its recorded shape needs (a damaged or crafted blob must
+    not expand without bound)."""
+    n = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+    raw = zlib.decompressobj().decompress(b, n + 1) if n >= 0 else b""
+    if len(raw) != n:
+        raise ValueError(f"a blob holds {'more than ' if len(raw) > n else ''}{len(raw)} bytes, not the {n} of "
+                         f"shape {shape}")
+    return np.frombuffer(raw, dtype=dtype).reshape(shape).copy()
 
 
 class MapStore:
@@ -212,9 +220,9 @@ class MapStore:
             raise MapFormatError(f"{path}: cannot write a map there ({path.parent} {why})")
         if path.exists():
             MapStore._check_replaceable(path, snapshot.world_id, replace_other_world)
-        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
+        # unique per write, not only per process: two threads saving the same path must not share (and unlink,
+        # or rename half-written) one temporary file
+        tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
         try:
             MapStore._write_file(tmp, snapshot, created_by)
             os.replace(tmp, path)
@@ -343,11 +351,15 @@ class MapStore:
             con.close()
         if meta.get("format") != "slam2d-map":
             raise MapFormatError(f"{path}: not a slam2d map (format tag {meta.get('format')!r})")
-        expected = {k: meta.get("counts", {}).get(k) for k in counts}
+        recorded = meta.get("counts")
+        expected = {k: recorded.get(k) if isinstance(recorded, dict) else None for k in counts}
         if expected != counts:
             raise MapFormatError(f"{path}: corrupt slam2d map (rows {counts} but the metadata records {expected})")
-        return MapInfo(path, int(meta["schema_version"]), str(meta["world_id"]), str(meta.get("created_at", "")),
-                       str(meta.get("created_by", "")), dict(meta["counts"]), dict(meta.get("user", {})))
+        try:
+            return MapInfo(path, int(meta["schema_version"]), str(meta["world_id"]), str(meta.get("created_at", "")),
+                           str(meta.get("created_by", "")), dict(meta["counts"]), dict(meta.get("user", {})))
+        except (KeyError, TypeError, ValueError) as e:  # a metadata row missing or of the wrong kind
+            raise MapFormatError(f"{path}: corrupt slam2d map (metadata: {type(e).__name__}: {e})") from None
 
     @staticmethod
     def read(path: str | Path, *, world_id: str | None = None) -> MapSnapshot:
