@@ -18,6 +18,7 @@ const errorsEl = document.getElementById('errors');
 const lab = {
   page, frames: 0, bytes: 0, drawn: 0, fps: 0, recvFps: 0, seq: -1, decodeMs: 0, drawMs: 0,
   pose: null, estPose: null, counters: {}, values: {}, notices: [], errors: [], hello: null, connected: false, states: 0,
+  lost: null,
   rows: [], inactive: [], zoom: null, feedback: null,
   sections: {}, record: 0, recorded: null, statusTicks: 0, openedAt: null,
   send: (obj) => send(obj),
@@ -116,8 +117,13 @@ function buildControls(params, actions) {
     out.id = `out-${p.name}`;
     wrap.append(text, input, out);
     controlsEl.appendChild(wrap);
+    input.addEventListener('input', () => { editing.add(input); });
+    // a slider dragged back to where it was fires no change: the edit ends when it is let go or left
+    for (const ev of ['pointerup', 'blur']) input.addEventListener(ev, () => { editing.delete(input); });
     input.addEventListener('change', () => {
+      editing.delete(input);
       let value;
+      if (input.type === 'number' && input.value.trim() === '') { showValues(); return; } // emptied: not a 0
       if (p.kind === 'bool') value = input.checked;
       else if (p.kind === 'choice') value = input.value;
       else value = Number(input.value);
@@ -196,17 +202,25 @@ function showFeedback(msg) {
   });
 }
 
-function applyState(msg) {
-  lab.values = msg.values || {};
-  lab.notices = msg.notices || [];
-  showTask(msg.task);
+// every control shows the server's value of its parameter, also right after the user changed it (the server may
+// have refused the change, or replaced it: an estimator that cannot run in this world falls back to another); only
+// a control in the middle of an edit (a slider being dragged, a number being typed) is left alone
+const editing = new Set();
+function showValues() {
   for (const [name, v] of Object.entries(lab.values)) {
     const input = document.getElementById(`ctl-${name}`);
-    if (!input || document.activeElement === input) continue;
+    if (!input || editing.has(input)) continue;
     if (input.type === 'checkbox') input.checked = !!v; else input.value = v;
     const out = document.getElementById(`out-${name}`);
     if (out && paramsByName[name] && ['float', 'int'].includes(paramsByName[name].kind)) out.textContent = fmt(v);
   }
+}
+
+function applyState(msg) {
+  lab.values = msg.values || {};
+  lab.notices = msg.notices || [];
+  showTask(msg.task);
+  showValues();
   noticesEl.innerHTML = '';
   for (const n of lab.notices) {
     const d = document.createElement('div');
@@ -235,6 +249,7 @@ function onText(text) {
     buildNumbers(scalarNames, msg.labels);
     buildControls(msg.params || [], msg.actions || []);
     buildCheck(msg.check);
+    for (const b of document.querySelectorAll('#check button')) b.disabled = false; // after a reconnect
     applyState(msg);
   } else if (msg.type === 'state') {
     if (!msg.pushed) lab.states += 1;  // replies to accepted commands (tests wait on it instead of sleeping)
@@ -242,6 +257,7 @@ function onText(text) {
   } else if (msg.type === 'feedback') {
     showFeedback(msg);
   } else if (msg.type === 'error') {
+    showValues(); // a refused change: the control goes back to the value the session kept
     lab.errors.push(msg.message);
     const d = document.createElement('div');
     d.className = 'error';
@@ -278,8 +294,30 @@ function connect() {
   ws = new WebSocket(`${proto}://${location.host}/ws/${page}?${qs}`);
   ws.binaryType = 'arraybuffer';
   ws.onopen = () => { lab.connected = true; lab.openedAt = performance.now(); statusEl.textContent = BUILDING; };
-  ws.onclose = () => { lab.connected = false; statusEl.textContent = 'disconnected from the lab server'; };
+  ws.onclose = () => { lab.connected = false; statusEl.textContent = 'disconnected from the lab server'; lost(); };
   ws.onmessage = (ev) => { if (typeof ev.data === 'string') onText(ev.data); else onFrame(ev.data); };
+}
+
+// the socket closed (the server stopped or restarted, or refused this page): say so where the controls are, grey the
+// controls out (they cannot reach a session now), and offer a new connection, which starts a new session
+function lost() {
+  for (const el of document.querySelectorAll('#controls input, #controls select, #controls button, #check button')) {
+    el.disabled = true;
+  }
+  if (document.getElementById('lost')) return;
+  const box = document.createElement('div');
+  box.id = 'lost';
+  box.className = 'error';
+  const text = document.createElement('span');
+  text.textContent = 'The connection to the lab server closed: this page has stopped and its controls do nothing. ' +
+    'If the server stopped, start it again (make run), then reconnect for a new session. ';
+  const b = document.createElement('button');
+  b.id = 'reconnect';
+  b.textContent = 'reconnect';
+  b.addEventListener('click', () => { box.remove(); lab.lost = null; lab.hello = null; connect(); });
+  box.append(text, b);
+  noticesEl.before(box);
+  lab.lost = box.textContent;
 }
 
 // the numbers panel, at most 10 times a second (text that changes 60 times a second cannot be read, and every
@@ -367,19 +405,24 @@ function loop() {
 }
 
 const DRIVE = new Set(['ArrowUp', 'ArrowDown', 'ArrowLeft', 'ArrowRight']);
+const held = new Set(); // drive keys whose press the server got: their release is sent wherever the focus is then
 window.addEventListener('keydown', (e) => {
   if (!DRIVE.has(e.key)) return;
   if (e.target && ['INPUT', 'SELECT'].includes(e.target.tagName)) return;
   e.preventDefault();
-  if (!e.repeat) send({ type: 'key', key: e.key, down: true });
+  if (!e.repeat) { held.add(e.key); send({ type: 'key', key: e.key, down: true }); }
 });
 window.addEventListener('keyup', (e) => {
   if (!DRIVE.has(e.key)) return;
-  if (e.target && ['INPUT', 'SELECT'].includes(e.target.tagName)) return;
-  e.preventDefault();
+  const inControl = e.target && ['INPUT', 'SELECT'].includes(e.target.tagName);
+  if (!held.delete(e.key) && inControl) return;
+  if (!inControl) e.preventDefault();
   send({ type: 'key', key: e.key, down: false });
 });
-window.addEventListener('blur', () => { for (const k of DRIVE) send({ type: 'key', key: k, down: false }); });
+window.addEventListener('blur', () => {
+  held.clear();
+  for (const k of DRIVE) send({ type: 'key', key: k, down: false });
+});
 
 connect();
 requestAnimationFrame(loop);
