@@ -174,9 +174,24 @@ class Log:
     metadata: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        arrays = {n: getattr(self, n) for n in (*_ARRAY_FIELDS, "initial_pose") if getattr(self, n) is not None}
+        for n, a in arrays.items():
+            if not isinstance(a, np.ndarray):
+                arrays[n] = np.asarray(a)
+        if arrays["odometry"].ndim != 2 or arrays["odometry"].shape[1] != 3:
+            raise ValueError(f"odometry must have shape (T, 3), got {arrays['odometry'].shape}")
+        # types, shapes, finite values and cross-field consistency, as Log.load checks a file; non-finite odometry
+        # is left to the runner, which names the step where it makes the pose non-finite
+        problem = _check_arrays(arrays, nonfinite_ok=("odometry",))
+        if problem:
+            raise ValueError(f"Log: {problem}")
+        for n, a in arrays.items():
+            if a is not getattr(self, n):
+                object.__setattr__(self, n, a)
+        smr = self.scan_max_range_m
+        if isinstance(smr, bool) or not isinstance(smr, int | float) or not 0 <= smr < float("inf"):
+            raise ValueError(f"Log: scan_max_range_m must be a finite number >= 0, got {smr!r}")
         t = self.odometry.shape[0]
-        if self.odometry.ndim != 2 or self.odometry.shape[1] != 3:
-            raise ValueError(f"odometry must have shape (T, 3), got {self.odometry.shape}")
         if self.stamps_s.shape != (t + 1,):
             raise ValueError(f"stamps_s must have shape ({t + 1},), got {self.stamps_s.shape}")
         k = self.obs_step.shape[0]
@@ -412,18 +427,27 @@ _ARRAY_KINDS: dict[str, tuple[str, int, bool]] = {
 }
 
 
-def _check_arrays(arrays: dict[str, Any]) -> str | None:
-    """What is wrong with the loaded arrays' types, shapes and values (None when they are usable); converts them
-    in place to float64 / int64."""
+def _check_arrays(arrays: dict[str, Any], nonfinite_ok: tuple[str, ...] = ()) -> str | None:
+    """What is wrong with the arrays' types, shapes and values (None when they are usable); converts them in place
+    to float64 / int64 (without a copy when they already are). ``nonfinite_ok`` names arrays exempt from the finite
+    check."""
     for n, a in arrays.items():
         kind, ndim, finite = _ARRAY_KINDS[n]
         if not isinstance(a, np.ndarray) or a.dtype.kind not in ("iu" if kind == "i" else "fiu"):
             return f"{n} must be {'an integer' if kind == 'i' else 'a numeric'} array, got {getattr(a, 'dtype', a)}"
         if a.ndim != ndim:
             return f"{n} must have {ndim} dimension(s), got shape {a.shape}"
-        arrays[n] = a = a.astype(np.int64 if kind == "i" else np.float64)
-        if finite and kind == "f" and not np.all(np.isfinite(a)):
+        arrays[n] = a = a.astype(np.int64 if kind == "i" else np.float64, copy=False)
+        if finite and kind == "f" and n not in nonfinite_ok and not np.all(np.isfinite(a)):
             return f"{n} has non-finite values"
+    stamps = arrays["stamps_s"]
+    if stamps.size > 1 and np.any(np.diff(stamps) < 0):
+        i = int(np.flatnonzero(np.diff(stamps) < 0)[0]) + 1
+        return (f"stamps_s must be non-decreasing (stamps_s[{i}] = {float(stamps[i])} < "
+                f"stamps_s[{i - 1}] = {float(stamps[i - 1])})")
+    for n in ("gps_step", "scan_step"):
+        if n in arrays and np.unique(arrays[n]).size != arrays[n].size:
+            return f"{n} has repeated steps (at most one per step)"
     t = arrays["odometry"].shape[0]
     checks = [
         ("initial_pose", lambda a: a.shape == (3,)),
@@ -436,10 +460,13 @@ def _check_arrays(arrays: dict[str, Any]) -> str | None:
         ("scan_ranges_m", lambda a: a.shape == (arrays.get("scan_step", np.zeros(0)).shape[0],
                                                arrays.get("scan_angles_rad", np.zeros(0)).shape[0])),
         ("dynamic_xy", lambda a: a.shape[0] == t + 1 and a.shape[2] == 2),
+        ("true_landmark_ids", lambda a: a.shape[0] == arrays.get("true_landmarks", np.zeros((a.shape[0], 2))).shape[0]),
+        ("marker_step", lambda a: a.size == 0 or (a.min() >= 0 and a.max() <= t)),
+        ("true_markers", lambda a: a.shape[1] == 2),
     ]
     for n, ok in checks:
         if n in arrays and not ok(arrays[n]):
             return f"{n} has an inconsistent shape {arrays[n].shape} or values out of range"
     if ("gps_step" in arrays) != ("gps_xy" in arrays) or ("scan_step" in arrays) != ("scan_ranges_m" in arrays):
-        return "gps_step/gps_xy or scan_step/scan_ranges_m stored without their partner"
+        return "gps_step/gps_xy or scan_step/scan_ranges_m given without their partner"
     return None

@@ -103,6 +103,12 @@ def run_association_scores(assignments: Sequence[ArrayLike], true_ids: Sequence[
     had been observed in an earlier step (so a correct match was possible). Steps are given in order: one array of
     assignments (>= 0 estimator id, NEW, CLUTTER) and one of true ids per step.
     """
+    if len(assignments) != len(true_ids):
+        raise ValueError(f"assignments and true_ids must have one array per step, got {len(assignments)} and "
+                         f"{len(true_ids)} steps")
+    for i, (x, y) in enumerate(zip(assignments, true_ids, strict=True)):
+        if np.size(x) != np.size(y):
+            raise ValueError(f"step {i}: {np.size(x)} assignments for {np.size(y)} true ids")
     if not assignments:
         return {"assoc_precision": float("nan"), "assoc_recall": float("nan")}
     a = np.concatenate([np.asarray(x, dtype=np.int64).reshape(-1) for x in assignments])

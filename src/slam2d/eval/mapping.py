@@ -43,6 +43,19 @@ class MapError:
         return float(np.sqrt(np.mean(self.errors_m**2))) if self.errors_m.size else float("nan")
 
 
+def _points(a: ArrayLike, name: str) -> Array:
+    """``a`` as finite (L, 2) positions (an empty array of any shape is no points); ValueError naming ``name``."""
+    p = np.asarray(a, dtype=np.float64)
+    if p.size == 0:
+        return np.zeros((0, 2))
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise ValueError(f"{name} must have shape (L, 2) (one landmark per row), got {p.shape}")
+    bad = ~np.all(np.isfinite(p), axis=1)
+    if np.any(bad):
+        raise ValueError(f"{name} landmark {int(np.flatnonzero(bad)[0])} has a non-finite position")
+    return p
+
+
 def map_error(estimated: ArrayLike, truth: ArrayLike, *, max_distance_m: float = 2.0,
               alignment: ArrayLike | None = None) -> MapError:
     """Match estimated landmarks to true ones (one-to-one, each pair closer than ``max_distance_m``) and score.
@@ -52,10 +65,14 @@ def map_error(estimated: ArrayLike, truth: ArrayLike, *, max_distance_m: float =
     """
     if not max_distance_m > 0:
         raise ValueError(f"max_distance_m must be > 0 (got {max_distance_m})")
-    est = np.asarray(estimated, dtype=np.float64).reshape(-1, 2)
-    ref = np.asarray(truth, dtype=np.float64).reshape(-1, 2)
-    if alignment is not None and est.shape[0]:
-        est = se2.transform_points(np.asarray(alignment, dtype=np.float64), est)
+    est = _points(estimated, "estimated")
+    ref = _points(truth, "truth")
+    if alignment is not None:
+        tf = np.asarray(alignment, dtype=np.float64)
+        if tf.shape != (3,) or not np.all(np.isfinite(tf)):
+            raise ValueError(f"alignment must be a finite pose [tx, ty, theta], got {tf.tolist()}")
+        if est.shape[0]:
+            est = se2.transform_points(tf, est)
     if est.shape[0] == 0 or ref.shape[0] == 0:
         return MapError(np.zeros((0, 2), dtype=np.int64), np.zeros(0), int(est.shape[0]), int(ref.shape[0]))
     d = np.hypot(est[:, None, 0] - ref[None, :, 0], est[:, None, 1] - ref[None, :, 1])

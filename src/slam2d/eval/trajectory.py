@@ -17,13 +17,26 @@ from slam2d.geometry.angles import wrap_angle
 Array = NDArray[np.float64]
 
 
+def _trajectory(a: ArrayLike, name: str, widths: tuple[int, ...]) -> Array:
+    """``a`` as a float64 (N, w) array, w in ``widths``, with finite values; ValueError naming ``name`` otherwise (a
+    NaN pose would make every metric NaN)."""
+    t = np.asarray(a, dtype=np.float64)
+    if t.ndim != 2 or t.shape[1] not in widths:
+        want = " or ".join(f"(N, {w})" for w in widths)
+        raise ValueError(f"{name} must have shape {want} (one pose per row), got {t.shape}")
+    bad = ~np.all(np.isfinite(t), axis=1)
+    if np.any(bad):
+        raise ValueError(f"{name} has a non-finite value in row {int(np.flatnonzero(bad)[0])}")
+    return t
+
+
 def align_se2(estimate: ArrayLike, reference: ArrayLike) -> Array:
     """The pose ``T_ref_est`` = [tx, ty, theta] that best maps estimated positions onto reference positions.
 
     Shapes: (N,2|3),(N,2|3) -> (3,). Raises ValueError for fewer than 2 points.
     """
-    p = np.asarray(estimate, dtype=np.float64)[:, :2]
-    q = np.asarray(reference, dtype=np.float64)[:, :2]
+    p = _trajectory(estimate, "estimate", (2, 3))[:, :2]
+    q = _trajectory(reference, "reference", (2, 3))[:, :2]
     if p.shape != q.shape or p.shape[0] < 2:
         raise ValueError(f"need two equal-length trajectories of >= 2 poses, got {p.shape} and {q.shape}")
     mp, mq = p.mean(axis=0), q.mean(axis=0)
@@ -50,9 +63,10 @@ class ATEResult:
 
 
 def ate(estimate: ArrayLike, reference: ArrayLike, *, align: bool = True) -> ATEResult:
-    """ATE of an estimated trajectory against a reference (same length, same time stamps). Shapes: (N,3),(N,3)."""
-    est = np.asarray(estimate, dtype=np.float64)
-    ref = np.asarray(reference, dtype=np.float64)
+    """ATE of an estimated trajectory against a reference (same length, same time stamps). Shapes: (N,3),(N,3)
+    (or (N,2) positions). Raises ValueError for mismatched shapes or non-finite poses."""
+    est = _trajectory(estimate, "estimate", (2, 3))
+    ref = _trajectory(reference, "reference", (2, 3))
     if est.shape[0] != ref.shape[0]:
         raise ValueError(f"trajectories differ in length: {est.shape[0]} vs {ref.shape[0]}")
     tf = align_se2(est, ref) if align else np.zeros(3)
@@ -79,12 +93,13 @@ class RPEResult:
 
 def rpe(estimate: ArrayLike, reference: ArrayLike, *, delta: int = 1) -> RPEResult:
     """RPE: compare ``between(x_i, x_{i+delta})`` of estimate and reference (no alignment needed)."""
-    est = np.asarray(estimate, dtype=np.float64)
-    ref = np.asarray(reference, dtype=np.float64)
+    est = _trajectory(estimate, "estimate", (3,))
+    ref = _trajectory(reference, "reference", (3,))
     if est.shape != ref.shape:
         raise ValueError(f"trajectories differ in shape: {est.shape} vs {ref.shape}")
-    if delta < 1:
-        raise ValueError(f"delta must be >= 1 (got {delta})")
+    if isinstance(delta, bool) or not isinstance(delta, int | np.integer) or delta < 1:
+        raise ValueError(f"delta must be an integer >= 1 (got {delta!r})")
+    delta = int(delta)
     d_est = se2.between(est[:-delta], est[delta:])
     d_ref = se2.between(ref[:-delta], ref[delta:])
     err = se2.between(d_ref, d_est)

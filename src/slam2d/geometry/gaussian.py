@@ -35,8 +35,8 @@ def chi2_gate(probability: float, dof: int) -> float:
     """Squared-distance threshold that a correct match passes with ``probability`` (chi-square quantile)."""
     if not 0.0 < probability < 1.0:
         raise ValueError(f"probability must be in (0, 1), got {probability}")
-    if dof < 1:
-        raise ValueError(f"dof must be >= 1, got {dof}")
+    if isinstance(dof, bool) or dof != int(dof) or dof < 1:
+        raise ValueError(f"dof must be an integer >= 1, got {dof}")
     return _chi2_quantile(float(probability), int(dof))
 
 

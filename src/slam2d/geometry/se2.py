@@ -26,6 +26,23 @@ def _f(a: ArrayLike) -> Array:
     return np.asarray(a, dtype=np.float64)
 
 
+def _pose(a: ArrayLike, what: str = "pose") -> Array:
+    """``a`` as float64 poses (..., 3); a ValueError for any other last axis (e.g. a transposed (3, N) batch, which
+    would otherwise be read as rows of garbage: batch axes come first)."""
+    p = np.asarray(a, dtype=np.float64)
+    if p.shape[-1:] != (3,):
+        raise ValueError(f"{what} must have shape (..., 3) [x, y, theta] with batch axes first, got {p.shape}")
+    return p
+
+
+def _xy(a: ArrayLike) -> Array:
+    """``a`` as float64 points (..., 2); a ValueError for any other last axis."""
+    p = np.asarray(a, dtype=np.float64)
+    if p.shape[-1:] != (2,):
+        raise ValueError(f"points must have shape (..., 2) [x, y] with batch axes first, got {p.shape}")
+    return p
+
+
 def matrix_from_rows(*rows: list[Array]) -> Array:
     """Stack rows of broadcast scalars into (..., n, m) matrices."""
     entries = [e for r in rows for e in r]
@@ -43,7 +60,7 @@ def matrix_from_rows(*rows: list[Array]) -> Array:
 
 def compose(a: ArrayLike, b: ArrayLike) -> Array:
     """Pose composition ``a (+) b`` (b expressed in the frame of a). Shapes: (...,3),(...,3) -> (...,3)."""
-    a, b = _f(a), _f(b)
+    a, b = _pose(a, "a"), _pose(b, "b")
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = a[..., 0] + c * b[..., 0] - s * b[..., 1]
     y = a[..., 1] + s * b[..., 0] + c * b[..., 1]
@@ -54,8 +71,13 @@ def compose_chain(start: ArrayLike, increments: ArrayLike) -> Array:
     """Poses ``start (+) u_1 (+) ... (+) u_k`` for k = 0..T (dead reckoning), vectorised: headings are a cumulative
     sum, positions a cumulative sum of the increments rotated by the heading before each. Shapes: (3,),(T,3) ->
     (T+1,3)."""
-    u = _f(increments).reshape(-1, 3)
-    p0 = _f(start).reshape(3)
+    u = _f(increments)
+    u = u.reshape(-1, 3) if u.size == 0 or u.shape == (3,) else _pose(u, "increments")
+    if u.ndim != 2:
+        raise ValueError(f"increments must have shape (T, 3), got {u.shape}")
+    p0 = _pose(start, "start")
+    if p0.shape != (3,):
+        raise ValueError(f"start must have shape (3,), got {p0.shape}")
     heading = p0[2] + np.concatenate([[0.0], np.cumsum(u[:, 2])])
     c, s = np.cos(heading[:-1]), np.sin(heading[:-1])
     step_xy = np.stack([c * u[:, 0] - s * u[:, 1], s * u[:, 0] + c * u[:, 1]], axis=-1)
@@ -65,7 +87,7 @@ def compose_chain(start: ArrayLike, increments: ArrayLike) -> Array:
 
 def compose_jacobians(a: ArrayLike, b: ArrayLike) -> tuple[Array, Array]:
     """``(J_ab_a, J_ab_b)``, each (..., 3, 3)."""
-    a, b = _f(a), _f(b)
+    a, b = _pose(a, "a"), _pose(b, "b")
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     one, zero = np.ones_like(c), np.zeros_like(c)
     ja = matrix_from_rows(
@@ -81,7 +103,7 @@ def compose_jacobians(a: ArrayLike, b: ArrayLike) -> tuple[Array, Array]:
 
 def inverse(a: ArrayLike) -> Array:
     """Inverse pose. Shapes: (...,3) -> (...,3)."""
-    a = _f(a)
+    a = _pose(a, "a")
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     x = -c * a[..., 0] - s * a[..., 1]
     y = s * a[..., 0] - c * a[..., 1]
@@ -90,7 +112,7 @@ def inverse(a: ArrayLike) -> Array:
 
 def inverse_jacobians(a: ArrayLike) -> tuple[Array]:
     """``(J_inv_a,)``, (..., 3, 3)."""
-    a = _f(a)
+    a = _pose(a, "a")
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     one, zero = np.ones_like(c), np.zeros_like(c)
     j = matrix_from_rows(
@@ -105,7 +127,7 @@ def inverse_jacobians(a: ArrayLike) -> tuple[Array]:
 
 def between(a: ArrayLike, b: ArrayLike) -> Array:
     """Relative pose ``a (-) b = inverse(a) (+) b``: b in the frame of a. Shapes: (...,3),(...,3) -> (...,3)."""
-    a, b = _f(a), _f(b)
+    a, b = _pose(a, "a"), _pose(b, "b")
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
     return np.stack([c * dx + s * dy, -s * dx + c * dy, angle_diff(b[..., 2], a[..., 2])], axis=-1)
@@ -113,7 +135,7 @@ def between(a: ArrayLike, b: ArrayLike) -> Array:
 
 def between_jacobians(a: ArrayLike, b: ArrayLike) -> tuple[Array, Array]:
     """``(J_ab_a, J_ab_b)``, each (..., 3, 3)."""
-    a, b = _f(a), _f(b)
+    a, b = _pose(a, "a"), _pose(b, "b")
     c, s = np.cos(a[..., 2]), np.sin(a[..., 2])
     dx, dy = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
     one, zero = np.ones_like(c), np.zeros_like(c)
@@ -130,7 +152,7 @@ def between_jacobians(a: ArrayLike, b: ArrayLike) -> tuple[Array, Array]:
 
 def transform_points(pose: ArrayLike, p: ArrayLike) -> Array:
     """Map points from the pose's frame to the outer frame: ``p_w = R p_b + t``. Shapes: (...,3),(...,2) -> (...,2)."""
-    pose, p = _f(pose), _f(p)
+    pose, p = _pose(pose), _xy(p)
     c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
     return np.stack(
         [pose[..., 0] + c * p[..., 0] - s * p[..., 1], pose[..., 1] + s * p[..., 0] + c * p[..., 1]], axis=-1
@@ -139,7 +161,7 @@ def transform_points(pose: ArrayLike, p: ArrayLike) -> Array:
 
 def transform_points_jacobians(pose: ArrayLike, p: ArrayLike) -> tuple[Array, Array]:
     """``(J_pw_pose (...,2,3), J_pw_p (...,2,2))``."""
-    pose, p = _f(pose), _f(p)
+    pose, p = _pose(pose), _xy(p)
     c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
     c, s = np.broadcast_arrays(c, s, p[..., 0])[:2]
     one, zero = np.ones_like(c), np.zeros_like(c)
@@ -152,7 +174,7 @@ def transform_points_jacobians(pose: ArrayLike, p: ArrayLike) -> tuple[Array, Ar
 
 def inverse_transform_points(pose: ArrayLike, p: ArrayLike) -> Array:
     """Map points from the outer frame into the pose's frame: ``p_b = R^T (p_w - t)``."""
-    pose, p = _f(pose), _f(p)
+    pose, p = _pose(pose), _xy(p)
     c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
     dx, dy = p[..., 0] - pose[..., 0], p[..., 1] - pose[..., 1]
     return np.stack([c * dx + s * dy, -s * dx + c * dy], axis=-1)
@@ -160,7 +182,7 @@ def inverse_transform_points(pose: ArrayLike, p: ArrayLike) -> Array:
 
 def inverse_transform_points_jacobians(pose: ArrayLike, p: ArrayLike) -> tuple[Array, Array]:
     """``(J_pb_pose (...,2,3), J_pb_p (...,2,2))``."""
-    pose, p = _f(pose), _f(p)
+    pose, p = _pose(pose), _xy(p)
     c, s = np.cos(pose[..., 2]), np.sin(pose[..., 2])
     dx, dy = p[..., 0] - pose[..., 0], p[..., 1] - pose[..., 1]
     c, s = np.broadcast_arrays(c, s, dx)[:2]
@@ -184,7 +206,7 @@ def _exp_coeffs(w: Array) -> tuple[Array, Array, Array, Array]:
 
 def exp(v: ArrayLike) -> Array:
     """Exponential map of a twist ``[vx, vy, w]`` (constant-velocity arc for unit time). Shapes: (...,3) -> (...,3)."""
-    v = _f(v)
+    v = _pose(v, "twist")
     a, b, _, _ = _exp_coeffs(v[..., 2])
     x = a * v[..., 0] - b * v[..., 1]
     y = b * v[..., 0] + a * v[..., 1]
@@ -193,7 +215,7 @@ def exp(v: ArrayLike) -> Array:
 
 def exp_jacobians(v: ArrayLike) -> tuple[Array]:
     """``(J_pose_v,)``, (..., 3, 3)."""
-    v = _f(v)
+    v = _pose(v, "twist")
     a, b, da, db = _exp_coeffs(v[..., 2])
     one, zero = np.ones_like(a), np.zeros_like(a)
     j = matrix_from_rows(
@@ -208,7 +230,7 @@ def exp_jacobians(v: ArrayLike) -> tuple[Array]:
 
 def log(pose: ArrayLike) -> Array:
     """Logarithm map, the inverse of :func:`exp` for headings in [-pi, pi). Shapes: (...,3) -> (...,3)."""
-    pose = _f(pose)
+    pose = _pose(pose)
     w = wrap_angle(pose[..., 2])
     a, b, _, _ = _exp_coeffs(w)
     det = a * a + b * b
@@ -227,7 +249,7 @@ def log_jacobians(pose: ArrayLike) -> tuple[Array]:
 
 def retract(x: ArrayLike, delta: ArrayLike) -> Array:
     """Additive-with-wrap retraction used by every filter and optimiser in slam2d."""
-    x, delta = _f(x), _f(delta)
+    x, delta = _pose(x, "x"), _pose(delta, "delta")
     out = x + delta
     out[..., 2] = wrap_angle(out[..., 2])
     return out
@@ -235,7 +257,7 @@ def retract(x: ArrayLike, delta: ArrayLike) -> Array:
 
 def local(x: ArrayLike, y: ArrayLike) -> Array:
     """Inverse of :func:`retract`: ``retract(x, local(x, y)) == y``."""
-    x, y = _f(x), _f(y)
+    x, y = _pose(x, "x"), _pose(y, "y")
     out = y - x
     out[..., 2] = angle_diff(y[..., 2], x[..., 2])
     return out

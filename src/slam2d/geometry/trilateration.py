@@ -15,6 +15,8 @@ def trilaterate(positions: ArrayLike, ranges: ArrayLike) -> Array:
     Shapes: (K,2),(K,) -> (2,).
     """
     p, r = np.asarray(positions, dtype=np.float64), np.asarray(ranges, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 2 or r.shape != (p.shape[0],):
+        raise ValueError(f"trilaterate: positions must be (K, 2) and ranges (K,), got {p.shape} and {r.shape}")
     if len(p) < 3:
         raise ValueError(f"trilateration needs >= 3 ranges (got {len(p)})")
     a = 2 * (p[1:] - p[0])

@@ -39,6 +39,19 @@ def _keys(a: ArrayLike, n: int | None, what: str) -> IntArray:
     return k.astype(np.int64)
 
 
+def _rows(a: ArrayLike, width: int, what: str) -> Array:
+    """A float64 copy of ``a`` as (N, width) rows: one (width,) vector is one row and an empty array none; any other
+    shape (a transposed (width, N) array, a flat vector) is a GraphError rather than a silent reshape."""
+    v = np.array(a, dtype=np.float64)
+    if v.size == 0:
+        return np.zeros((0, width))
+    if v.shape == (width,):
+        return v.reshape(1, width)
+    if v.ndim != 2 or v.shape[1] != width:
+        raise GraphError(f"{what}: values must have shape (N, {width}), got {v.shape}")
+    return v
+
+
 def _check_values(name: str, k: IntArray, v: Array, existing: IntArray) -> None:
     """GraphError unless keys ``k`` match values ``v`` in number, are unique (also against ``existing``) and the
     values are finite."""
@@ -68,8 +81,8 @@ class Values:
     def __post_init__(self) -> None:
         self.pose_keys = _keys(self.pose_keys, None, "Values.pose_keys")  # astype: always a copy
         self.point_keys = _keys(self.point_keys, None, "Values.point_keys")
-        self.poses = np.array(self.poses, dtype=np.float64).reshape(-1, 3)
-        self.points = np.array(self.points, dtype=np.float64).reshape(-1, 2)
+        self.poses = _rows(self.poses, 3, "Values.poses")
+        self.points = _rows(self.points, 2, "Values.points")
         _check_values("pose", self.pose_keys, self.poses, np.zeros(0, np.int64))
         _check_values("point", self.point_keys, self.points, np.zeros(0, np.int64))
 
@@ -79,14 +92,14 @@ class Values:
     def add_poses(self, keys: ArrayLike, poses: ArrayLike) -> None:
         """Append poses (keys must be new)."""
         k = _keys(keys, None, "add_poses")
-        v = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        v = _rows(poses, 3, "add_poses")
         _check_values("pose", k, v, self.pose_keys)
         self.pose_keys, self.poses = np.concatenate([self.pose_keys, k]), np.concatenate([self.poses, v])
 
     def add_points(self, keys: ArrayLike, points: ArrayLike) -> None:
         """Append points (keys must be new)."""
         k = _keys(keys, None, "add_points")
-        v = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        v = _rows(points, 2, "add_points")
         _check_values("point", k, v, self.point_keys)
         self.point_keys, self.points = np.concatenate([self.point_keys, k]), np.concatenate([self.points, v])
 
@@ -177,7 +190,10 @@ class FactorGraph:
             raise GraphError(f"add_{kind}: measurement {int(np.flatnonzero(~np.isfinite(zz).all(1))[0])} not finite")
         ks = np.stack([_keys(a, n, f"add_{kind}") for a in keys]) if n else np.zeros((len(keys), 0), np.int64)
         om = np.asarray(information, dtype=np.float64)
-        if om.ndim == 2:
+        if om.ndim not in (2, 3) or om.shape[-2:] != (k.dim, k.dim) or (om.ndim == 3 and om.shape[0] not in (1, n)):
+            raise GraphError(f"add_{kind}: information must be ({k.dim}, {k.dim}) or ({n}, {k.dim}, {k.dim}) for {n} "
+                             f"measurements, got {om.shape}")
+        if om.ndim == 2 or om.shape[0] != n:
             om = np.broadcast_to(om, (n, k.dim, k.dim))
         L = sqrt_information(om, k.dim, f"add_{kind}") if n else np.zeros((0, k.dim, k.dim))
         if kind == "between" and n and np.any(ks[0] == ks[1]):
@@ -286,6 +302,9 @@ class FactorGraph:
         code = kernel_code(kernel)
         if kernel is not None and not (param > 0 and np.isfinite(param)):
             raise GraphError(f"with_robust: param must be > 0 (got {param})")
+        unknown = sorted(set(kinds) - set(KINDS))
+        if unknown:
+            raise GraphError(f"with_robust: unknown factor type(s) {unknown}; known: {sorted(KINDS)}")
         out = FactorGraph()
         for k in self.kinds():
             b = self.block(k)

@@ -41,8 +41,9 @@ import scipy.sparse as sp
 from numpy.typing import ArrayLike
 
 from slam2d.config import check_nonnegative, check_positive
+from slam2d.graph.factors import KINDS
 from slam2d.graph.graph import FactorGraph, Values
-from slam2d.graph.linear import LinearSolver, SolverError, make_solver
+from slam2d.graph.linear import SOLVERS, LinearSolver, SolverError, make_solver
 from slam2d.graph.problem import Analysis
 from slam2d.graph.robust import kernel_code
 
@@ -85,12 +86,22 @@ class OptimizerConfig:
     def __post_init__(self) -> None:
         if self.method not in ("lm", "gn", "dogleg"):
             raise ValueError(f"OptimizerConfig.method must be 'lm', 'gn' or 'dogleg' (got {self.method!r})")
-        if self.max_iterations < 1:
-            raise ValueError(f"OptimizerConfig.max_iterations must be >= 1 (got {self.max_iterations})")
+        for name in ("max_iterations", "max_rejections"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < 1:
+                raise ValueError(f"OptimizerConfig.{name} must be an integer >= 1 (got {v!r})")
+        if not (isinstance(self.lambda_decrease_factor, int | float) and self.lambda_decrease_factor > 1
+                and np.isfinite(self.lambda_decrease_factor)):
+            raise ValueError("OptimizerConfig.lambda_decrease_factor must be a finite number > 1 (got "
+                             f"{self.lambda_decrease_factor!r})")
+        if self.linear_solver != "auto" and self.linear_solver not in SOLVERS:
+            raise ValueError(f"OptimizerConfig.linear_solver: unknown linear solver {self.linear_solver!r}; choose one "
+                             f"of auto, {', '.join(SOLVERS)}")
+        unknown = sorted(set(self.robust_kinds) - set(KINDS))
+        if unknown:
+            raise ValueError(f"OptimizerConfig.robust_kinds: unknown factor type(s) {unknown}; known: {sorted(KINDS)}")
         check_nonnegative(self, "relative_decrease_tol", "absolute_decrease_tol", "step_tol")
         check_positive(self, "lambda_initial_factor", "lambda_max", "robust_param")
-        if self.max_rejections < 1:
-            raise ValueError(f"OptimizerConfig.max_rejections must be >= 1 (got {self.max_rejections})")
         try:
             kernel_code(self.robust_kernel)
         except ValueError as e:

@@ -144,6 +144,8 @@ class Analysis:
         Fp, Fl = self.free_pose.size, self.free_point.size
         V = Fp + Fl
         if V == 0:
+            if not blocks:
+                raise GraphError("nothing to optimise: the graph has no factors")
             raise GraphError("nothing to optimise: every pose is held fixed (FIX / fixed_pose_keys) and there are "
                              "no landmarks")
         pose_var = np.full(P, -1, np.int64)

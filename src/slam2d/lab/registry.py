@@ -105,6 +105,9 @@ def make_config(name: str, overrides: Mapping[str, Any] | None = None,
     resolves it at its first step with observations.
     """
     spec = get_spec(name)
+    for what, arg in (("overrides", overrides), ("log_metadata", log_metadata)):
+        if arg is not None and not isinstance(arg, Mapping):
+            raise TypeError(f"make_estimator({name!r}): {what} must be a mapping (a dict), got {type(arg).__name__}")
     cfg = spec.config_cls()
     meta = log_metadata or {}
     fields = {f.name for f in dataclasses.fields(cfg)}

@@ -84,6 +84,9 @@ def run(
 
     ``progress=None`` shows a bar on stderr for runs longer than 2000 steps when stderr is a terminal.
     """
+    if not isinstance(rng, np.random.Generator):
+        raise TypeError(f"run: rng must be a numpy.random.Generator (np.random.default_rng(seed)), "
+                        f"got {type(rng).__name__}")
     estimator.reset(log.initial_pose, rng=rng)
     t = log.num_steps
     poses = np.empty((t + 1, 3))

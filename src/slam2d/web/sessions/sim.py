@@ -457,7 +457,8 @@ class SimSession(Session):
         """ATE (after SE(2) alignment) of the estimated against the true path, via ``slam2d.eval.trajectory.ate``."""
         n = len(self.true_path)
         if self._ate_cache[0] != n:
-            value = ate(self.trajectory(), np.asarray(self.true_path)).rmse_m if n >= 2 else 0.0
+            traj = self.trajectory()  # a diverged (non-finite) estimate shows as nan: ate refuses non-finite poses
+            value = (ate(traj, np.array(self.true_path)).rmse_m if np.isfinite(traj).all() else np.nan) if n > 1 else 0.
             self._ate_cache = (n, value)
         return self._ate_cache[1]
 
