@@ -112,6 +112,7 @@ def _scaling(seeds: Sequence[int], overrides: Mapping[str, str]) -> ExperimentOu
                   overrides={"dt_s": cfg.dt_s}, max_run_s=cfg.max_run_s, blas_threads=cfg.blas_threads or None,
                   report=print)
     rows = [{"estimator": k, **v} for k, v in res["fits"].items()]
+    rows += [{"estimator": k, "claim": f"skipped: {why}"} for k, why in res["skipped"].items()]
     print_table(res["rows"], ["estimator", "landmarks", "mapped", "obs_per_step", "step_ms_median",
                               "wall_step_ms_median", "steps"])
     print()
