@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -44,4 +45,11 @@ def cmd(args: argparse.Namespace) -> int:
         for f in sorted(Path(tmp).iterdir(), key=lambda f: f.name == page.name):
             os.replace(f, out_dir / f.name)
     print(f"wrote {out_dir / page.name}")
+    from slam2d.lab.sweep import ResultStore
+
+    records, problems = ResultStore(d).scan()
+    if problems:  # the page lists them too; a script reading only the exit code and stderr should hear of them
+        print(f"slam2d report: note: {len(problems)} unusable lines in {d / 'results.jsonl'} ({len(records)} usable "
+              f"runs); first: line {problems[0].line}: {problems[0].reason} (the next 'slam2d sweep' re-runs them)",
+              file=sys.stderr)
     return 0

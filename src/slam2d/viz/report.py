@@ -181,10 +181,6 @@ def build_report(directory: str | Path, out: str | Path | None = None) -> Path:
     found = False
 
     records, problems = ResultStore(d).scan()
-    if problems and not records and not (d / "scaling.json").exists() and not (d / "consistency.json").exists():
-        p = problems[0]  # nothing usable at all: say why instead of writing an empty report
-        raise ValueError(f"{d / 'results.jsonl'}:{p.line}: {p.reason} (no usable run in it; "
-                         f"{len(problems)} unusable lines)")
     if records or problems:
         found = True
         groups: dict[str, list[dict[str, Any]]] = defaultdict(list)

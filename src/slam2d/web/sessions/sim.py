@@ -454,12 +454,11 @@ class SimSession(Session):
         return np.asarray(self.est_path)
 
     def ate_rmse(self) -> float:
-        """ATE (after SE(2) alignment) of the estimated against the true path, via ``slam2d.eval.trajectory.ate``."""
-        n = len(self.true_path)
-        if self._ate_cache[0] != n:
-            traj = self.trajectory()  # a diverged (non-finite) estimate shows as nan: ate refuses non-finite poses
-            value = (ate(traj, np.array(self.true_path)).rmse_m if np.isfinite(traj).all() else np.nan) if n > 1 else 0.
-            self._ate_cache = (n, value)
+        """ATE (after SE(2) alignment) against the true path, via ``slam2d.eval.trajectory.ate``; nan if diverged."""
+        if self._ate_cache[0] != (n := len(self.true_path)):
+            traj = self.trajectory()
+            ok = np.isfinite(traj).all()
+            self._ate_cache = (n, (ate(traj, np.array(self.true_path)).rmse_m if ok else np.nan) if n > 1 else 0.0)
         return self._ate_cache[1]
 
     def rows(self) -> Sequence[str]:
