@@ -5,6 +5,7 @@ Prints ratios and fitted log-log exponents (time ~ n^k). Run: .venv/bin/python b
 
 from __future__ import annotations
 
+import argparse
 import time
 
 import numpy as np
@@ -53,6 +54,7 @@ def timeit(fn, repeat: int = 3) -> float:  # type: ignore[no-untyped-def]
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     pose = np.array([4.0, 3.0, 0.3])
     cfg = OccupancyConfig(resolution_m=0.1)
     print("occupancy update: vectorised vs per-beam loop (one scan, room)")

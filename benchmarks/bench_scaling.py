@@ -7,13 +7,23 @@ claims. Same as ``slam2d experiment scaling``; pass N values as arguments, e.g. 
 
 from __future__ import annotations
 
-import sys
+import argparse
 
 from slam2d.lab.experiments import scaling
 
 
+def _count(text: str) -> int:
+    n = int(text)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"a landmark count must be >= 1 (got {n})")
+    return n
+
+
 def main() -> None:
-    ns = tuple(int(a) for a in sys.argv[1:]) or (100, 400, 1600, 6400)
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("landmarks", nargs="*", type=_count, metavar="N",
+                    help="landmark counts, one lap of the grid scenario each (default 100 400 1600 6400)")
+    ns = tuple(ap.parse_args().landmarks) or (100, 400, 1600, 6400)
     res = scaling(landmarks=ns, report=print)
     print(f"\n{'estimator':<16} {'slope(mapped)':>13} {'end slope':>10} {'slope(N)':>9}  claim")
     for name, f in res["fits"].items():

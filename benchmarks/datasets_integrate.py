@@ -3,6 +3,7 @@ commands; prints times, ratios and the fitted log-log exponent. Also times each 
 
 from __future__ import annotations
 
+import argparse
 import time
 
 import numpy as np
@@ -21,6 +22,7 @@ def best_of(fn, repeats: int = 5) -> float:
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     rng = np.random.default_rng(0)
     sizes = [40_000, 160_000, 640_000]
     secs = []

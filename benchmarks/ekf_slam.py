@@ -20,6 +20,7 @@ import os
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
+import argparse
 import sys
 import time
 
@@ -107,7 +108,9 @@ def step_costs(steps: int = 14, warm: int = 4) -> int:
 
 
 def main() -> int:
-    if "--steps" in sys.argv[1:]:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--steps", action="store_true", help="the cost of a whole filter step with every landmark in view")
+    if ap.parse_args().steps:
         return step_costs()
     rng = np.random.default_rng(0)
     noise = MotionNoise()

@@ -61,6 +61,13 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--scenarios", nargs="+", default=["room", "loop"])
     args = ap.parse_args()
+    if args.seeds < 1 or args.steps < 1:
+        ap.error(f"--seeds and --steps must be >= 1 (got {args.seeds}, {args.steps})")
+    from slam2d.sim.scenarios import SCENARIOS
+
+    bad = [s for s in args.scenarios if s not in SCENARIOS]
+    if bad:
+        ap.error(f"--scenarios: unknown {', '.join(bad)}; scenarios: {', '.join(sorted(SCENARIOS))}")
     for scenario in args.scenarios:
         logs = [simulate(scenario, seed, steps=args.steps) for seed in range(args.seeds)]
         print(f"== {scenario}: {args.seeds} seeds x {args.steps} steps, FastSLAM 2.0, 100 particles", flush=True)

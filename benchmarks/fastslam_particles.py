@@ -21,6 +21,15 @@ def main() -> None:
     ap.add_argument("--scenario", default="room")
     ap.add_argument("--method", default="known", help="association method (known, or e.g. mahalanobis = ML)")
     args = ap.parse_args()
+    from slam2d.lab.registry import make_config
+    from slam2d.sim.scenarios import SCENARIOS
+
+    if args.scenario not in SCENARIOS:
+        ap.error(f"--scenario: unknown {args.scenario!r}; scenarios: {', '.join(sorted(SCENARIOS))}")
+    try:
+        make_config("fastslam2", {"association.method": args.method})
+    except ValueError as e:
+        ap.error(f"--method: {e}")
     seeds = range(2 if args.quick else 5)
     ms = [5, 10, 25, 50, 100]
     logs = {s: slam2d.simulate(args.scenario, s) for s in seeds}

@@ -240,16 +240,34 @@ def main() -> None:
     args = ap.parse_args()
     if args.surveyed_markers and not args.floor_markers:
         ap.error("--surveyed-markers needs --floor-markers (the drones must read the markers)")
+    if args.drones < 1:
+        ap.error(f"--drones must be >= 1 (got {args.drones})")
+    # checked before the run, not after it: the fleet sizes and the output file
+    try:
+        sizes = [int(s) for s in args.scaling.split(",")] if args.scaling else []
+    except ValueError:
+        ap.error(f"--scaling takes comma-separated fleet sizes, e.g. 1,2,5 (got {args.scaling!r})")
+    if any(n < 1 for n in sizes):
+        ap.error(f"--scaling: every fleet size must be >= 1 (got {args.scaling!r})")
     result: dict[str, Any] = {"args": vars(args)}
     work = Path(args.out + ".work")  # server/drone logs and records, kept
-    work.mkdir(parents=True, exist_ok=True)
+    try:
+        work.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        ap.error(f"--out {args.out}: cannot create {work} ({e.strerror})")
+    from slam2d.io.atomic import check_output
+
+    try:
+        check_output(args.out, "--out")
+    except OSError as e:
+        ap.error(f"{e.filename}: {e.strerror}")
     for old in work.glob("*"):
         old.unlink()
     if not args.skip_network:
         result["network"] = network_run(args, work)
         print(json.dumps(result["network"], indent=1, default=str), flush=True)
     if args.scaling:
-        result["scaling"] = scaling([int(s) for s in args.scaling.split(",")], args.scaling_minutes,
+        result["scaling"] = scaling(sizes, args.scaling_minutes,
                                     args.seed, work, args.floor_markers, args.surveyed_markers, args.survey_sigma)
         print(json.dumps(result["scaling"], indent=1), flush=True)
     Path(args.out).write_text(json.dumps(result, indent=1, default=str) + "\n")

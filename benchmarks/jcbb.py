@@ -13,6 +13,7 @@ against the number of observations.
 
 from __future__ import annotations
 
+import argparse
 import time
 
 import numpy as np
@@ -103,6 +104,7 @@ def run(world: str, n_obs: int, n_lm: int, trials: int, rng: np.random.Generator
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     rng = np.random.default_rng(2024)
     print("JCBB, 100 candidate landmarks; medians over 10 random problems per row; CPU time of one associate() call")
     header = f"{'world':7s} {'obs':>4s} {'IC/obs':>6s} {'cpu ms':>8s} {'cpu max':>8s} {'nodes med':>10s} " \

@@ -215,12 +215,34 @@ def main() -> None:
                          "e.g. loop_queue=12")
     args = ap.parse_args()
     from slam2d.config import parse_set_args
+    from slam2d.lab.registry import make_config
 
-    overrides = parse_set_args(args.set)
+    try:
+        overrides = parse_set_args(args.set)
+        make_config("lidar", overrides)  # an unknown field or bad value fails here, not in the first log's process
+    except ValueError as e:
+        ap.error(str(e))
     records: dict[str, Any] = {"logs": [], "sim": []}
     if args.repeat < 1:
         ap.error("--repeat must be >= 1")
+    if args.sim_seeds < 0:
+        ap.error(f"--sim-seeds must be >= 0 (got {args.sim_seeds})")
     names = [n for n in args.logs.split(",") if n]
+    # checked before the first log's minutes of work: every log is there, the JSON file can be written
+    from slam2d.io.carmen import resolve_carmen
+
+    for n in names:
+        try:
+            resolve_carmen(n)
+        except FileNotFoundError as e:
+            ap.error(f"--logs: {e}")
+    if args.json:
+        from slam2d.io.atomic import check_output
+
+        try:
+            check_output(args.json, "--json")
+        except OSError as e:
+            ap.error(f"{e.filename}: {e.strerror}")
     records["machine"] = ref = machine_reference()
     print(f"machine: {ref['cpu']}; reference ICP (10 iterations, 180 points on 1000) {ref['icp_10_iterations_ms']:.2f}"
           f" ms CPU, one KD-tree query of those points {ref['kdtree_query_ms']:.3f} ms", flush=True)

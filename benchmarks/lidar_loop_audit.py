@@ -68,18 +68,24 @@ def _seeds(text: str) -> list[int]:
     for part in text.split(","):
         lo, _, hi = part.partition("-")
         out += list(range(int(lo), int(hi or lo) + 1))
+    if not out:
+        raise ValueError(text)
     return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seeds", default="0-9", help="warehouse seeds, e.g. 0-4 or 2,3 (default 0-9)")
+    ap.add_argument("--seeds", type=_seeds, default="0-9", help="warehouse seeds, e.g. 0-4 or 2,3 (default 0-9)")
     ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                     help="override a LidarSLAMConfig field (float values), e.g. loop_static_radius_m=0")
     args = ap.parse_args()
-    overrides = {k: float(v) for k, _, v in (s.partition("=") for s in args.set)}
+    try:
+        overrides = {k: float(v) for k, _, v in (s.partition("=") for s in args.set)}
+        make_config("lidar", overrides)  # an unknown field fails here, not after the first seeds
+    except ValueError as e:
+        ap.error(f"--set FIELD=VALUE (float values): {e}")
     tot = np.zeros(2, dtype=int)
-    for seed in _seeds(args.seeds):
+    for seed in args.seeds:
         tot += audit(seed, overrides)
     print(f"total: {tot[0]} accepted, {tot[1]} false")
 

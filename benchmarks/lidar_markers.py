@@ -46,6 +46,19 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--json", default=None, help="write every run's record here")
     args = ap.parse_args()
+    if not args.seeds:
+        ap.error("--seeds: the range is empty (write it low-high, e.g. 1-8)")
+    if args.steps < 1:
+        ap.error(f"--steps must be >= 1 (got {args.steps})")
+    if args.workers < 1:
+        ap.error(f"--workers must be >= 1 (got {args.workers})")
+    if args.json:  # refused now, not after the runs
+        from slam2d.io.atomic import check_output
+
+        try:
+            check_output(args.json, "--json")
+        except OSError as e:
+            ap.error(f"{e.filename}: {e.strerror}")
     with ProcessPoolExecutor(args.workers) as ex:
         rows = list(ex.map(one_seed, args.seeds, [args.steps] * len(args.seeds)))
     print(f"warehouse, floor markers, {args.steps} steps, default lidar estimator; with / without the readings")

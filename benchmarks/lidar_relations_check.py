@@ -18,6 +18,8 @@ the scans themselves: a SLAM estimate scored on them is compared with it in the 
 
 from __future__ import annotations
 
+import argparse
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -90,6 +92,18 @@ def check(name: str) -> None:
               f"{np.median(yaw_gap[copied]):.2f} deg (others: {np.median(yaw_gap[~copied]):.2f} deg)")
 
 
-if __name__ == "__main__":
-    for n in ("aces", "intel", "fr079", "mit-csail"):
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.parse_args()
+    names = ("aces", "intel", "fr079", "mit-csail")
+    for n in names:  # a missing log is said now, in one line, not as a traceback after the first logs' checks
+        try:
+            resolve_carmen(n)
+        except FileNotFoundError as e:
+            ap.error(str(e))
+    for n in names:
         check(n)
+
+
+if __name__ == "__main__":
+    main()

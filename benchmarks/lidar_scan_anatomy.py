@@ -78,6 +78,14 @@ def main() -> None:
     ap.add_argument("--over-ms", type=float, default=30.0, help="scans slower than this are described (ms)")
     ap.add_argument("--show", type=int, default=25, help="print this many of the slowest scans")
     args = ap.parse_args()
+    if args.show < 0:
+        ap.error(f"--show must be >= 0 (got {args.show})")
+    from slam2d.io.carmen import resolve_carmen
+
+    try:
+        resolve_carmen(args.log)  # a missing or unknown log in one line
+    except FileNotFoundError as e:
+        ap.error(str(e))
     recs = anatomy(args.log)
     total = np.array([r["total"] for r in recs])
     print(f"{args.log}: {len(total)} scans, CPU per scan p50 {np.percentile(total, 50):.1f} p99 "

@@ -32,8 +32,22 @@ def main() -> None:
     ap.add_argument("--max-time", type=float, default=None, help="use only the first S seconds")
     ap.add_argument("--out", default=None, help="JSON output file")
     args = ap.parse_args()
-    from slam2d.io.datasets import load_dataset
+    from slam2d.io.datasets import data_dir, dataset_status, load_dataset
 
+    # refused now, not after the (15-25 min) run: a missing dataset, an output file that cannot be written
+    folder, missing = dataset_status("mrclam")
+    if missing:
+        ap.error(f"MRCLAM 7 not found at {folder} (data directory from {data_dir()[1]}; missing {missing[0]}"
+                 f"{' and more' if len(missing) > 1 else ''}; set SLAM2D_DATA)")
+    if args.max_time is not None and args.max_time <= 0:
+        ap.error(f"--max-time must be > 0 (got {args.max_time})")
+    if args.out:
+        from slam2d.io.atomic import check_output
+
+        try:
+            check_output(args.out, "--out")
+        except OSError as e:
+            ap.error(f"{e.filename}: {e.strerror}")
     if args.single:
         from slam2d.lab.runner import run_named
 

@@ -61,7 +61,7 @@ def report(label: str, values: np.ndarray, runs: int, steps: int) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("part", choices=["overconfident", "band", "range-only"])
     part = ap.parse_args().part
     if part == "range-only":

@@ -12,6 +12,7 @@ Run: OPENBLAS_NUM_THREADS=1 python benchmarks/online_m3500.py [--window W] [--fu
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
@@ -24,7 +25,8 @@ from slam2d.graph.optimizer import OptimizerConfig, optimize
 from slam2d.graph.problem import chi2
 from slam2d.io import read_graph
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "datasets" / "manhattan-m3500" / "input_M3500_g2o.g2o"
+DATA = (Path(os.environ.get("SLAM2D_DATA") or Path(__file__).resolve().parents[2] / "shared" / "datasets")
+        / "manhattan-m3500" / "input_M3500_g2o.g2o")
 
 
 def steps_of(block):
@@ -90,8 +92,14 @@ def main() -> int:
     ap.add_argument("--full-every", type=int, default=500)
     ap.add_argument("--limit", type=int, default=0, help="use only the first N poses (0: all)")
     args = ap.parse_args()
+    for flag, v, lo in (("--window", args.window, 1), ("--iterations", args.iterations, 1),
+                        ("--full-every", args.full_every, 1), ("--limit", args.limit, 0)):
+        if v < lo:
+            ap.error(f"{flag} must be >= {lo} (got {v})")
+    if args.limit == 1:
+        ap.error("--limit must be 0 (all poses) or >= 2")
     if not DATA.exists():
-        print(f"dataset not found: {DATA}")
+        print(f"dataset not found: {DATA} (set SLAM2D_DATA); skipped")
         return 0
     gf = read_graph(DATA)
     block = gf.graph.block("between")

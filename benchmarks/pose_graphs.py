@@ -128,10 +128,15 @@ def factorisation_runners(gf):
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser()
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--datasets", default="intel,m3500,city")
+    ap.add_argument("--datasets", default="intel,m3500,city", help=f"comma-separated, of {', '.join(DATASETS)}")
     args = ap.parse_args(argv)
+    if args.repeats < 1:
+        ap.error(f"--repeats must be >= 1 (got {args.repeats})")
+    bad = [n for n in args.datasets.split(",") if n not in DATASETS]
+    if bad:
+        ap.error(f"--datasets: unknown {', '.join(map(repr, bad))}; known: {', '.join(DATASETS)}")
     print(f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}  python {sys.version.split()[0]}  "
           f"numpy {np.__version__}")
     for name in args.datasets.split(","):

@@ -41,18 +41,23 @@ PLAN = [
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true")
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="first 3000 steps of each log")
     ap.add_argument("--only", metavar="DATASET", help="run one dataset (mrclam, victoria-park, plaza1, plaza2)")
     args = ap.parse_args()
+    names = list(dict.fromkeys(name for name, *_ in PLAN))
+    if args.only and args.only not in names:
+        ap.error(f"--only: unknown dataset {args.only!r}; one of {', '.join(names)}")
     rows, trajs, vp_rows = [], {}, []
+    skipped: set[tuple[str, int]] = set()  # (dataset, robot) that failed to load: said once, not per estimator
     for name, robot, est, over in PLAN:
-        if args.only and name != args.only:
+        if (args.only and name != args.only) or (name, robot) in skipped:
             continue
         try:
             log = load_dataset(name, None, robot, max_steps=3000 if args.quick else None)
         except (FileNotFoundError, ValueError) as e:
             print(f"skip {name}: {e}", file=sys.stderr)
+            skipped.add((name, robot))
             continue
         t0 = time.process_time()
         res, rec = slam2d.run_named(est, log=log, seed=0, overrides=over)

@@ -19,11 +19,15 @@ from slam2d.graph.synthetic import false_loop_closures, manhattan_walk
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser()
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--poses", type=int, default=400)
     ap.add_argument("--outliers", type=int, default=20)
     ap.add_argument("--seed", type=int, default=21)
     a = ap.parse_args(argv)
+    if a.poses < 2:
+        ap.error(f"--poses must be >= 2 (got {a.poses})")
+    if a.outliers < 0:
+        ap.error(f"--outliers must be >= 0 (got {a.outliers})")
     rng = np.random.default_rng(a.seed)
     sg = manhattan_walk(rng, num_poses=a.poses)
     n_in = sg.graph.block("between").size

@@ -276,6 +276,25 @@ def main() -> None:
     args = ap.parse_args()
     if args.markers == "surveyed" and args.estimator != "lidar-lifelong":
         ap.error("--markers surveyed needs --estimator lidar-lifelong (the survey corrects the lifelong mode)")
+    # refused now, not after flight 1's session (minutes; about an hour with --full)
+    if args.starts < 0:
+        ap.error(f"--starts must be >= 0 (got {args.starts})")
+    if args.budget_s <= 0:
+        ap.error(f"--budget-s must be > 0 (got {args.budget_s})")
+    if args.table_from and not Path(args.table_from).is_file():
+        ap.error(f"--table-from {args.table_from}: no such file")
+    if args.json and not args.table_from:
+        from slam2d.io.atomic import check_output
+
+        try:
+            check_output(args.json, "--json")
+        except OSError as e:
+            ap.error(f"{e.filename}: {e.strerror}")
+    if args.maps_dir and not args.table_from:
+        try:
+            Path(args.maps_dir).mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            ap.error(f"--maps-dir {args.maps_dir}: cannot create it ({e.strerror})")
     if args.table_from:
         with open(args.table_from) as fh:
             trials_of = json.load(fh)["trials"]

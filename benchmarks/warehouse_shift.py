@@ -107,6 +107,17 @@ def main() -> None:
                     help="with --markers surveyed: the survey's error per axis, drawn once per marker (m)")
     ap.add_argument("--json", default=None, help="write the final numbers as JSON")
     args = ap.parse_args()
+    if args.hours <= 0:
+        ap.error(f"--hours must be > 0 (got {args.hours})")
+    if args.report_min <= 0:
+        ap.error(f"--report-min must be > 0 (got {args.report_min})")
+    if args.json:  # refused now, not after the (hours of) shift
+        from slam2d.io.atomic import check_output
+
+        try:
+            check_output(args.json, "--json")
+        except OSError as e:
+            ap.error(f"{e.filename}: {e.strerror}")
 
     over = {"dt_s": 0.1} if args.markers == "off" else {"dt_s": 0.1, "warehouse.floor_markers": True}
     cfg = with_overrides(ScenarioConfig(name="warehouse-challenge"), over)

@@ -9,6 +9,7 @@ Run: OPENBLAS_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/warehouse
 
 from __future__ import annotations
 
+import argparse
 import os
 import tempfile
 import time
@@ -42,6 +43,7 @@ def current_rss_mib() -> float:
 
 
 def main() -> None:
+    argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter).parse_args()
     cfg = with_overrides(ScenarioConfig(name="warehouse-challenge"), {"floor_markers": "true"})
     sim = Simulator(cfg, seed=0)
     lidar = sim.config.lidar

@@ -264,10 +264,25 @@ def main() -> int:
     ap.add_argument("--pages", default=",".join(SIM_PAGES), help="comma-separated pages for the laps part")
     ap.add_argument("--out", default="out/web_fps.json", help="write the results here (JSON)")
     args = ap.parse_args()
+    from slam2d.web.pages import PAGE_BY_SLUG
+
+    # refused now, not after minutes of laps: an unknown page, a non-positive time, an output that cannot be written
+    pages = [p for p in args.pages.split(",") if p]
+    bad = [p for p in pages if p.partition(":")[0] not in PAGE_BY_SLUG]
+    if bad:
+        ap.error(f"--pages: unknown page(s) {', '.join(bad)}; pages: {', '.join(sorted(PAGE_BY_SLUG))}")
+    if args.seconds <= 0:
+        ap.error(f"--seconds must be > 0 (got {args.seconds})")
+    out = Path(args.out)
+    from slam2d.io.atomic import check_output
+
+    try:
+        check_output(out, "--out")
+    except OSError as e:
+        ap.error(f"{e.filename}: {e.strerror}")
     have_browser = Path("/usr/bin/chromium").exists()
     result: dict[str, Any] = {"load_average_at_start": os.getloadavg(), "cpus": os.cpu_count(),
                               "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS")}
-    pages = [p for p in args.pages.split(",") if p]
     if args.part in ("all", "laps"):
         result["laps_server"] = []
         for slug in pages:
@@ -299,7 +314,6 @@ def main() -> int:
     else:
         print("browser parts skipped: /usr/bin/chromium is not installed")
     result["load_average_at_end"] = os.getloadavg()
-    out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(f"written to {out}")

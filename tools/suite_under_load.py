@@ -33,6 +33,8 @@ def main() -> int:
     ap.add_argument("--out", type=Path, default=ROOT / "test-artifacts" / "suite_under_load.jsonl")
     ap.add_argument("pytest_args", nargs="*", help="extra pytest arguments (after --)")
     a = ap.parse_args()
+    if a.runs < 1 or a.hogs < 0:
+        ap.error(f"--runs must be >= 1 and --hogs >= 0 (got {a.runs}, {a.hogs})")
     a.out.parent.mkdir(parents=True, exist_ok=True)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip()
