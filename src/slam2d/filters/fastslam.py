@@ -99,10 +99,13 @@ from slam2d.geometry.angles import wrap_angle
 from slam2d.log import Step
 from slam2d.models.motion import MotionNoise
 from slam2d.models.sensors import SensorConfig, range_bearing
+from slam2d.sim.scenarios import MEMORY_ENV, memory_limit_mb
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 BoolArray = NDArray[np.bool_]
+#: bytes of one landmark slot of one particle (mean, covariance, track counters and sums), twice for resampling
+_BYTES_PER_SLOT = 512.0
 
 #: the particle set and kernels live in slam2d.filters.fastslam_particles; re-exported here
 __all__ = ["FastSLAM", "FastSLAM2Config", "FastSLAMConfig", "ParticleSet", "effective_sample_size", "gaussian_logpdf2",
@@ -191,6 +194,13 @@ class FastSLAMConfig:
         if not isinstance(self.initial_capacity, int) or self.initial_capacity < 1:
             raise ValueError(f"{type(self).__name__}.initial_capacity must be an integer >= 1 "
                              f"(got {self.initial_capacity!r})")
+        # every particle allocates its landmark slots at reset (mean, covariance, track counters; copied when
+        # resampling): refuse before the run rather than fail out of memory at its first step
+        need_mb = self.particles * self.initial_capacity * _BYTES_PER_SLOT / 2**20
+        if need_mb > memory_limit_mb():
+            raise ValueError(f"{type(self).__name__}: particles={self.particles} x initial_capacity="
+                             f"{self.initial_capacity} landmark slots would need about {need_mb:.3g} MB, over the "
+                             f"limit of {memory_limit_mb():g} MB; set {MEMORY_ENV} to allow it")
         try:
             self.tracks(known=False)
         except ValueError as e:

@@ -244,6 +244,10 @@ class LidarSLAMConfig:
                        "loop_max_sigma_m", "map_resolution_m", "loop_pair_xy_m", "loop_pair_theta_rad",
                        "loop_static_normal_rad", "loop_static_seen_m", "min_fitness", "loop_min_score",
                        "loop_max_ambiguity", "loop_wide_max_ambiguity")
+        check_nonnegative(self, "min_range_m")
+        if not self.min_range_m < self.max_range_m:  # else no beam is ever matched: odometry under lidar's name
+            raise ValueError(f"LidarSLAMConfig.min_range_m must be < max_range_m (got {self.min_range_m} >= "
+                             f"{self.max_range_m})")
         if self.loop_confirmations not in (0, 1):
             raise ValueError(f"LidarSLAMConfig.loop_confirmations must be 0 or 1 (got {self.loop_confirmations})")
         for n in ("local_map_keyframes", "loop_every", "loop_candidates", "loop_min_separation",

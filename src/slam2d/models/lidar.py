@@ -32,6 +32,8 @@ class LidarConfig:
     def __post_init__(self) -> None:
         check_positive(self, "fov_rad", "max_range_m")
         check_nonnegative(self, "range_std_m")
+        if self.fov_rad > 2 * np.pi + 1e-12:  # beams past a full turn would repeat directions
+            raise ValueError(f"LidarConfig.fov_rad must be <= 2*pi (got {self.fov_rad})")
         if self.beams < 1:
             raise ValueError(f"LidarConfig.beams must be >= 1 (got {self.beams})")
         if self.every < 1:

@@ -124,6 +124,38 @@ MEMORY_ENV = "SLAM2D_MAX_MEMORY_MB"
 DEFAULT_MAX_MEMORY_MB = 4096.0
 #: observations of real landmarks one step can hold at most, for the estimate (the sensor's range limits them)
 _VISIBLE_PER_STEP = 500
+#: bytes per beam of one simulated scan: the culled caster's (beam, segment) pairs and their arithmetic (measured
+#: 330-560 B in the room and the warehouses)
+_BYTES_PER_BEAM = 640.0
+#: bytes per landmark of building the room (rejection sampling of 4n points against the route; measured ~850 B)
+_ROOM_BYTES_PER_LANDMARK = 1024.0
+#: bytes per wall segment of building the challenge warehouse (outlines, stacking, tile index; measured ~220 B)
+_BYTES_PER_WALL = 256.0
+
+
+def _layout_bytes(cfg: ScenarioConfig) -> tuple[float, float, float]:
+    """(landmarks, bytes to build the layout, bytes of one step's floor-marker temporaries and of the readings the
+    whole log holds) of the layout ``cfg`` asks for: arithmetic on the config, no allocation."""
+    spec = SCENARIOS[cfg.name]
+    lms = float(cfg.landmarks if cfg.landmarks is not None else spec.defaults.get("landmarks", 1000))
+    steps = float(cfg.steps if cfg.steps is not None else spec.defaults.get("steps", 1000))
+    wh = cfg.warehouse
+    build, markers, lines = (_ROOM_BYTES_PER_LANDMARK * lms if cfg.name == "room" else 0.0), 0.0, 0.0
+    if spec.uses_warehouse:  # uprights are the landmarks; walls: panels, 4 per upright and per pallet
+        blocks = (wh.aisles + 1.0) * (wh.cross_aisles + 1.0)
+        lms = blocks * 2.0 * (wh.bays_per_face_per_block + 1.0)
+        build = _BYTES_PER_WALL * (4.0 * lms + 4.0 * wh.pallets + blocks + 4.0) + 64.0 * lms
+        if wh.floor_markers:
+            rows, cols = wh.aisles + 2.0, wh.cross_aisles + 2.0
+            markers = rows * ((wh.width_m - wh.road_m) // wh.marker_spacing_m + 1.0 + cols)
+            build += 40.0 * markers * markers  # the pairwise distances that drop near-duplicates
+            lines = 2.0
+    elif spec.floor_markers and wh.floor_markers:  # the small warehouse: 5 aisle lines, 32 m each
+        markers = 5.0 * (32.0 // wh.marker_spacing_m + 1.0)
+        build, lines = 16.0 * markers, 1.0
+    # a reading per marker within the camera's footprint on the lines under it, every read_every steps
+    seen = min(markers, lines * (2.0 * cfg.camera.footprint_radius_m / wh.marker_spacing_m + 1.0))
+    return lms, build, 64.0 * markers + 24.0 * seen * steps / cfg.camera.read_every
 
 
 def estimate_memory_bytes(cfg: ScenarioConfig) -> tuple[float, float]:
@@ -131,7 +163,7 @@ def estimate_memory_bytes(cfg: ScenarioConfig) -> tuple[float, float]:
     descriptors, lidar beams and moving objects. Pure arithmetic on the config (no allocation)."""
     spec = SCENARIOS[cfg.name]
     steps = float(cfg.steps if cfg.steps is not None else spec.defaults.get("steps", 1000))
-    lms = float(cfg.landmarks if cfg.landmarks is not None else spec.defaults.get("landmarks", 1000))
+    lms, build, markers = _layout_bytes(cfg)
     movers = float(cfg.moving_objects if cfg.moving_objects is not None else spec.defaults.get("moving_objects", 0))
     per_obs = 8.0 * (4 + cfg.sensor.descriptor_dim)
     obs_per_step = min(lms, _VISIBLE_PER_STEP) * cfg.sensor.detection_prob + cfg.sensor.clutter_rate + movers
@@ -139,9 +171,10 @@ def estimate_memory_bytes(cfg: ScenarioConfig) -> tuple[float, float]:
     landmark_bytes = lms * (64.0 + 8.0 * cfg.sensor.descriptor_dim)
     total = steps * (obs_per_step * per_obs + 200.0 + 16.0 * movers) + scans + landmark_bytes
     # one step: every landmark's range and bearing, the clutter draws and their descriptors, a scan
-    step = 8.0 * (lms * (8 + cfg.sensor.descriptor_dim) + obs_per_step * (4 + cfg.sensor.descriptor_dim)
-                  + cfg.lidar.beams * 8)
-    return total, step
+    step = 8.0 * (lms * (8 + cfg.sensor.descriptor_dim) + obs_per_step * (4 + cfg.sensor.descriptor_dim)) \
+        + _BYTES_PER_BEAM * cfg.lidar.beams
+    # building the layout comes before the first step; its temporaries count like a step's
+    return total + markers, max(step + markers, build)
 
 
 def memory_limit_mb() -> float:
@@ -163,8 +196,17 @@ def check_memory(cfg: ScenarioConfig) -> None:
         raise ValueError(
             f"ScenarioConfig: this run would need about {need_mb:.3g} MB (steps={cfg.steps}, "
             f"landmarks={cfg.landmarks}, sensor.clutter_rate={cfg.sensor.clutter_rate:g}, "
-            f"sensor.descriptor_dim={cfg.sensor.descriptor_dim}, lidar.beams={cfg.lidar.beams}), over the limit of "
-            f"{limit_mb:g} MB; set {MEMORY_ENV} to allow it")
+            f"sensor.descriptor_dim={cfg.sensor.descriptor_dim}, lidar.beams={cfg.lidar.beams}{_layout_fields(cfg)}), "
+            f"over the limit of {limit_mb:g} MB; set {MEMORY_ENV} to allow it")
+
+
+def _layout_fields(cfg: ScenarioConfig) -> str:
+    """The warehouse fields that size the layout, for the memory message (empty where they do not apply)."""
+    spec, wh = SCENARIOS[cfg.name], cfg.warehouse
+    out = f", warehouse.width_m={wh.width_m:g}, warehouse.aisles={wh.aisles}" if spec.uses_warehouse else ""
+    if wh.floor_markers and (spec.uses_warehouse or spec.floor_markers):
+        out += f", warehouse.marker_spacing_m={wh.marker_spacing_m:g}"
+    return out
 
 
 @dataclass(frozen=True)

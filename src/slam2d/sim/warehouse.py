@@ -37,6 +37,9 @@ UPRIGHT_M = 0.1
 PALLET_SIZE_M = (1.2, 1.0)  # along the rack (x), into the bay (y)
 FORKLIFT_SIZE_M = (2.0, 1.0)  # length, width
 MIN_AISLE_M = 3.0  # a forklift (1 m wide) and a drone pass each other
+#: most flights: the pallets of flight f are found by replaying f relocations (~2 ms each), so 10,000 (27 years of
+#: daily flights) takes ~20 s to build; beyond, a mistyped flight would build for hours
+MAX_FLIGHT = 10_000
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)
@@ -74,6 +77,9 @@ class WarehouseConfig:
         for n, lo in (("aisles", 1), ("cross_aisles", 0), ("pallets", 0), ("flight", 0)):
             if getattr(self, n) < lo:
                 raise ValueError(f"WarehouseConfig.{n} must be >= {lo} (got {getattr(self, n)})")
+        if self.flight > MAX_FLIGHT:
+            raise ValueError(f"WarehouseConfig.flight must be <= {MAX_FLIGHT} (got {self.flight}): each flight's "
+                             "pallets are found by replaying every relocation since flight 0")
         if self.road_m < FORKLIFT_SIZE_M[0] + 1.0:
             raise ValueError(f"WarehouseConfig.road_m must be >= {FORKLIFT_SIZE_M[0] + 1.0} m so a forklift can "
                              f"turn (got {self.road_m})")
