@@ -16,7 +16,7 @@ from slam2d.estimator import Estimate, Estimator, LoopEvent, SupportsLoopClosure
 from slam2d.eval.association import run_association_scores
 from slam2d.eval.trajectory import ate, rpe
 from slam2d.geometry import se2
-from slam2d.lab.registry import EstimatorSpec, association_method, estimator_names, get_spec, make_config
+from slam2d.lab.registry import EstimatorSpec, association_method, get_spec, make_config
 from slam2d.log import Log
 from slam2d.sim.scenarios import MEMORY_ENV, ScenarioConfig, memory_limit_mb
 from slam2d.sim.simulator import simulate, spawn_streams
@@ -87,9 +87,6 @@ def run(
     if not isinstance(rng, np.random.Generator):
         raise TypeError(f"run: rng must be a numpy.random.Generator (np.random.default_rng(seed)), "
                         f"got {type(rng).__name__}")
-    spec = _registered_spec(estimator)
-    if spec is not None:  # a registered back end on a log without what it measures with: refused, as by run_named
-        check_inputs(spec, log)
     estimator.reset(log.initial_pose, rng=rng)
     t = log.num_steps
     poses = np.empty((t + 1, 3))
@@ -184,15 +181,6 @@ def _check_particle_memory(name: str, cfg: object, log: Log) -> None:
     if need_mb > limit_mb:
         raise ValueError(f"{name}: particles={particles} with ~{landmarks} landmarks would need about "
                          f"{need_mb:.3g} MB, over the limit of {limit_mb:g} MB; set {MEMORY_ENV} to allow it")
-
-
-def _registered_spec(estimator: Estimator) -> EstimatorSpec | None:
-    """The registered spec whose config class is exactly ``estimator.config``'s (None for an estimator of the
-    user's own, or when specs sharing the class disagree on what they need)."""
-    cfg = getattr(estimator, "config", None)
-    specs = [get_spec(n) for n in estimator_names()]
-    found = [s for s in specs if cfg is not None and type(cfg) is s.config_cls]
-    return found[0] if found and len({s.needs for s in found}) == 1 else None
 
 
 def check_inputs(spec: EstimatorSpec, log: Log) -> None:
