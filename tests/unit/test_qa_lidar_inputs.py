@@ -155,9 +155,9 @@ def test_dataset_opt_reaches_the_carmen_reader_and_dataset_path_is_refused(
     rec = json.loads(js.read_text())
     assert rec["log_skipped_lines"] == 1 and rec["steps"] == 5
     assert "log.clf:8: truncated FLASER" in capsys.readouterr().err
-    for opt, msg in [("nope=1", "unknown option(s) ['nope'] for a CARMEN log"),
-                     ("max_range_m=abc", "max_range_m must be a number"),
-                     ("on_error=maybe", "on_error must be 'raise' or 'skip'")]:
+    for opt, msg in [("nope=1", "unknown field(s) ['nope'] in CarmenConfig"),
+                     ("max_range_m=abc", "max_range_m must be of type float"),
+                     ("on_error=maybe", "on_error must be one of ['raise', 'skip']")]:
         assert main(["run", "--dataset", str(log), "--dataset-opt", opt]) == 2
         assert msg in one_line_error(capsys)
     assert main(["run", "--dataset", str(log), "--dataset-path", str(tmp_path)]) == 2
@@ -165,7 +165,7 @@ def test_dataset_opt_reaches_the_carmen_reader_and_dataset_path_is_refused(
     # the alias takes the same options
     out = tmp_path / "m.png"
     assert main(["lidar", "--dataset", str(log), "--dataset-opt", "nope=1", "--out", str(out)]) == 2
-    assert "unknown option(s) ['nope'] for a CARMEN log" in one_line_error(capsys)
+    assert "unknown field(s) ['nope'] in CarmenConfig" in one_line_error(capsys)
     assert main(["lidar", "--dataset", str(log), "--dataset-opt", "on_error=skip", "--out", str(out)]) == 0
     assert "log.clf:8: truncated FLASER" in capsys.readouterr().err and out.exists()
 

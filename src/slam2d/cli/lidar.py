@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import dataclasses
 import sys
 from collections.abc import Iterator, Mapping
 from pathlib import Path
@@ -50,20 +49,10 @@ def register(sub: Any) -> None:
 def carmen_config(options: Mapping[str, Any] | None = None) -> CarmenConfig:
     """A :class:`CarmenConfig` from loader options (``--dataset-opt KEY=VALUE``: max_range_m=30, on_error=skip,
     backwards_stamps=skip, max_lines=N); an unknown key or a value of the wrong kind is a ValueError naming it."""
+    from slam2d.config import from_dict
     from slam2d.io.carmen import CarmenConfig
 
-    opts = dict(options or {})
-    defaults = {f.name: f.default for f in dataclasses.fields(CarmenConfig)}
-    bad = sorted(set(opts) - set(defaults))
-    if bad:
-        raise ValueError(f"unknown option(s) {bad} for a CARMEN log; valid options: {sorted(defaults)}")
-    for k, v in opts.items():
-        number = isinstance(v, (int, float)) and not isinstance(v, bool)
-        if isinstance(defaults[k], (int, float)) and not number:
-            raise ValueError(f"CARMEN log option {k} must be a number (got {v!r})")
-        if isinstance(defaults[k], int) and not isinstance(defaults[k], bool) and not isinstance(v, int):
-            raise ValueError(f"CARMEN log option {k} must be an integer (got {v!r})")
-    return CarmenConfig(**opts)
+    return from_dict(CarmenConfig, dict(options or {}))
 
 
 def load_laser_log(name: str, data_dir: str | None = None, max_steps: int | None = None,
