@@ -171,3 +171,32 @@ def test_run_and_make_estimator_refuse_a_missing_rng_and_non_mapping_arguments()
         slam2d.run(est, log, rng=None)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match="overrides must be a mapping"):
         slam2d.make_estimator("ekf", [("sensor.range_std_m", 1.0)])  # type: ignore[arg-type]
+
+
+def test_run_refuses_a_registered_back_end_on_a_log_without_its_input() -> None:
+    """``slam2d.run`` from Python, like ``run_named`` and the CLI: the lidar back end on the grid (no walls, no scans)
+    would only dead-reckon under its name. The registry finds the back end by the estimator's class."""
+    from slam2d.lab.registry import make_estimator
+    from slam2d.lab.runner import run
+    from slam2d.sim.scenarios import ScenarioConfig
+    from slam2d.sim.simulator import simulate
+
+    log = simulate(ScenarioConfig(name="grid", steps=10), 0)
+    for name in ("lidar", "lidar-lifelong"):
+        with pytest.raises(ValueError, match="estimator 'lidar' or 'lidar-lifelong' needs lidar scans; grid has none"):
+            run(make_estimator(name), log, rng=np.random.default_rng(0))
+    assert run(make_estimator("ekf"), log, rng=np.random.default_rng(0)).trajectory.shape == (11, 3)
+
+
+def test_run_named_refuses_a_bad_estimator_value_before_simulating(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A typo or a bad value in an ``estimator.`` override used to be found only after the scenario was simulated."""
+    import slam2d.lab.runner as runner
+
+    def no_simulation(*args: object) -> None:
+        raise AssertionError("simulated before the estimator's overrides were checked")
+
+    monkeypatch.setattr(runner, "simulate", no_simulation)
+    with pytest.raises(ValueError, match="nope"):
+        runner.run_named("ekf", "room", overrides={"estimator.nope": 1})
+    with pytest.raises(ValueError, match="particles"):
+        runner.run_named("fastslam", "room", overrides={"particles": "many"})

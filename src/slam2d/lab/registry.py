@@ -8,7 +8,7 @@ and then applies overrides.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -73,11 +73,13 @@ _NEEDS = {"lidar": "scans", "lidar-lifelong": "scans", "ekf": "bearings", "fasts
           "fastslam2": "bearings", "graph": "bearings", "range-only-ekf": "ranges", "range-only-graph": "ranges"}
 
 
-def _load_builtin() -> None:
-    """Register the built-in back ends that are not registered yet (lazy: importing them costs time)."""
+def _load_builtin(names: Iterable[str] | None = None) -> None:
+    """Register the built-in back ends (or those of ``names``) that are not registered yet (lazy: importing them
+    costs time)."""
     import importlib
 
-    for name, (module, cfg_name, cls_name, description) in _BUILTIN.items():
+    for name in _BUILTIN if names is None else names:
+        module, cfg_name, cls_name, description = _BUILTIN[name]
         if name not in ESTIMATORS:
             mod = importlib.import_module(module)
             register_estimator(name, getattr(mod, cfg_name), getattr(mod, cls_name), description, _NEEDS.get(name, ""))
@@ -93,6 +95,15 @@ def get_spec(name: str) -> EstimatorSpec:
     if name not in ESTIMATORS:
         raise ValueError(f"unknown estimator {name!r}; valid estimators: {sorted(ESTIMATORS)}")
     return ESTIMATORS[name]
+
+
+def specs_of(estimator: object) -> list[EstimatorSpec]:
+    """The registered back ends ``estimator`` is an instance of, found by its class (``lidar`` and
+    ``lidar-lifelong`` share one); empty for an estimator built outside the registry."""
+    cls = type(estimator)
+    _load_builtin(name for name, (module, _, cls_name, _) in _BUILTIN.items()
+                  if (module, cls_name) == (cls.__module__, cls.__qualname__))  # imported already: no cost
+    return [spec for spec in ESTIMATORS.values() if spec.factory is cls]
 
 
 def make_config(name: str, overrides: Mapping[str, Any] | None = None,

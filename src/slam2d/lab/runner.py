@@ -16,7 +16,7 @@ from slam2d.estimator import Estimate, Estimator, LoopEvent, SupportsLoopClosure
 from slam2d.eval.association import run_association_scores
 from slam2d.eval.trajectory import ate, rpe
 from slam2d.geometry import se2
-from slam2d.lab.registry import EstimatorSpec, association_method, get_spec, make_config
+from slam2d.lab.registry import EstimatorSpec, association_method, get_spec, make_config, specs_of
 from slam2d.log import Log
 from slam2d.sim.scenarios import MEMORY_ENV, ScenarioConfig, memory_limit_mb
 from slam2d.sim.simulator import simulate, spawn_streams
@@ -87,6 +87,9 @@ def run(
     if not isinstance(rng, np.random.Generator):
         raise TypeError(f"run: rng must be a numpy.random.Generator (np.random.default_rng(seed)), "
                         f"got {type(rng).__name__}")
+    specs = specs_of(estimator)
+    if len({spec.needs for spec in specs}) == 1:  # a registered back end: refused, as by run_named, on a log
+        _check_needs(" or ".join(repr(spec.name) for spec in specs), specs[0].needs, log)  # lacking its input
     estimator.reset(log.initial_pose, rng=rng)
     t = log.num_steps
     poses = np.empty((t + 1, 3))
@@ -186,15 +189,19 @@ def _check_particle_memory(name: str, cfg: object, log: Log) -> None:
 def check_inputs(spec: EstimatorSpec, log: Log) -> None:
     """Refuse a log that lacks what the back end measures with (:attr:`EstimatorSpec.needs`): it would only be
     dead-reckoned, under the estimator's name."""
+    _check_needs(repr(spec.name), spec.needs, log)
+
+
+def _check_needs(name: str, needs: str, log: Log) -> None:
     what = str(log.metadata.get("dataset", log.metadata.get("scenario", "this log")))
-    if spec.needs == "scans" and (log.scan_step is None or len(log.scan_step) == 0):
-        raise ValueError(f"estimator {spec.name!r} needs lidar scans; {what} has none")
-    if spec.needs == "bearings" and len(log.obs_bearing_rad) and not np.isfinite(log.obs_bearing_rad).any():
-        raise ValueError(f"estimator {spec.name!r} needs landmark bearings; {what}'s observations are ranges only "
+    if needs == "scans" and (log.scan_step is None or len(log.scan_step) == 0):
+        raise ValueError(f"estimator {name} needs lidar scans; {what} has none")
+    if needs == "bearings" and len(log.obs_bearing_rad) and not np.isfinite(log.obs_bearing_rad).any():
+        raise ValueError(f"estimator {name} needs landmark bearings; {what}'s observations are ranges only "
                          "(use range-only-ekf or range-only-graph)")
-    if spec.needs in ("bearings", "ranges") and not len(log.obs_step) and log.scan_step is not None \
+    if needs in ("bearings", "ranges") and not len(log.obs_step) and log.scan_step is not None \
             and len(log.scan_step):
-        raise ValueError(f"estimator {spec.name!r} needs landmark observations; {what} is a lidar log without any "
+        raise ValueError(f"estimator {name} needs landmark observations; {what} is a lidar log without any "
                          "(use --estimator lidar)")
 
 
@@ -222,6 +229,8 @@ def run_named(
     if log is None:
         scen_over, est_over = split_overrides(rest, ScenarioConfig, spec.config_cls)
         cfg = with_overrides(ScenarioConfig(name=scenario or "room"), scen_over)
+        if est_over or est_only:  # a bad estimator value is refused before the simulation, not after it
+            with_overrides(spec.config_cls(), {**est_over, **est_only})
         log = simulate(cfg, seed)
     else:
         (est_over,) = split_overrides(rest, spec.config_cls)
