@@ -28,6 +28,18 @@ def open_page(page: Any, url: str) -> list[str]:
     return errors
 
 
+def wait_or_explain(page: Any, condition_js: str) -> None:
+    """Wait for ``condition_js``; on a timeout, fail with what the page knew (connection, errors, last feedback), so
+    that a failure seen once under load says where it stopped."""
+    try:
+        page.wait_for_function(condition_js, timeout=WAIT_MS)
+    except Exception as e:
+        state = page.evaluate("({connected: window.slamLab.connected, errors: window.slamLab.errors, "
+                              "feedback: window.slamLab.feedback, states: window.slamLab.states, "
+                              "drawn: window.slamLab.drawn, status: document.getElementById('status')?.textContent})")
+        raise AssertionError(f"waited {WAIT_MS / 1000:g} s for {condition_js}; the page: {state}") from e
+
+
 def next_frames(page: Any, n: int = 3) -> None:
     """Wait until ``n`` more frames have been drawn: everything the server did before now is on screen."""
     f0 = page.evaluate("window.slamLab.drawn")
@@ -78,10 +90,10 @@ def test_page_loads_without_console_errors(page: Any, lab_server: str, artifacts
         check = CHECKS[slug]
         wrong = (check.answer + 1) % len(check.choices)
         page.locator(f"#check-choice-{wrong}").click()
-        page.wait_for_function("window.slamLab.feedback && window.slamLab.feedback.correct === false", timeout=WAIT_MS)
+        wait_or_explain(page, "window.slamLab.feedback && window.slamLab.feedback.correct === false")
         assert page.locator("#check-feedback.wrong").inner_text() == check.feedback[wrong]
         page.locator(f"#check-choice-{check.answer}").click()
-        page.wait_for_function("window.slamLab.feedback && window.slamLab.feedback.correct === true", timeout=WAIT_MS)
+        wait_or_explain(page, "window.slamLab.feedback && window.slamLab.feedback.correct === true")
         assert page.locator("#check-feedback.right").inner_text() == check.feedback[check.answer]
         # the chapter's try-this task, waiting to be done
         if slug in TASKS:

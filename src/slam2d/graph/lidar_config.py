@@ -47,8 +47,9 @@ class LidarSLAMConfig:
     icp: ICPConfig = field(default_factory=_tracking_icp)
     """tracking scan matcher. It keeps the matches within 4 times their median distance (``median_gate``), not a
     fixed 85 % of them: a fixed trim drops the same share of a clean scan, whose matches all hold, as of one with a
-    moved forklift. Chosen on intel and the simulated room and aisle (gate 3 / 4: intel 0.0150 / 0.0142 m, the room
-    0.014 / 0.013 m, the aisle 0.240 / 0.203 m), then reported on aces, fr079 and mit-csail (README, "Lidar SLAM")."""
+    moved forklift. Chosen on intel and the simulated room and aisle (gate 3 / 4: intel 0.0150 / 0.0142 m on one CPU,
+    0.0153 / 0.0150 m on another, the room 0.014 / 0.013 m, the aisle 0.240 / 0.203 m), then reported on aces, fr079
+    and mit-csail (README, "Lidar SLAM")."""
     min_fitness: float = 0.5
     """a tracking match needs this fraction of the scan's points matched, else the odometry guess is kept."""
     track_rematch_rmse_m: float = 0.05
