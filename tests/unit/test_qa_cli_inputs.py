@@ -94,6 +94,10 @@ def test_map_save_refuses_a_file_that_is_not_a_map_before_simulating(tmp_path, c
     line = _one_error_line(capsys)
     assert "not a slam2d map" in line and "refusing to overwrite" in line
     assert target.read_text() == "mine\n"
+    # --replace-other-world allows replacing another world's map, never a file that is not a map: refused up front
+    # too (it was found only when the map was written, after the run)
+    assert main(["map", "save", "--scenario", "room", "--out", str(target), "--replace-other-world"]) == 2
+    assert "not a slam2d map" in _one_error_line(capsys) and target.read_text() == "mine\n"
     assert main(["map", "save", "--scenario", "room", "--out", str(tmp_path / "sub" / "m.db")]) == 2
     assert "does not exist" in _one_error_line(capsys)
 

@@ -71,16 +71,13 @@ def _check_save_target(args: argparse.Namespace, scenario: ScenarioConfig) -> No
     """Refuse a bad ``--out`` before the simulation and the run (``MapStore.write`` checks again when it writes):
     a directory or unwritable place, a missing folder, or (without --replace-other-world) a file that is not a
     slam2d map or holds another world's map."""
-    from slam2d.cli.map_session import check_map_files, world_of
+    from slam2d.cli.map_session import world_of
 
     path = check_output(args.out, "--out")
     if not path.parent.is_dir():
         raise MapFormatError(f"{path}: cannot write a map there ({path.parent} does not exist)")
-    if path.exists() and not args.replace_other_world:
-        try:
-            check_map_files(None, args.out, world_of(scenario, args.seed))
-        except MapFormatError as e:
-            raise MapFormatError(str(e) if "refusing" in str(e) else f"{e}; refusing to overwrite it") from None
+    if path.exists():
+        MapStore.check_replaceable(path, world_of(scenario, args.seed), args.replace_other_world)
 
 
 def cmd_save(args: argparse.Namespace) -> int:

@@ -42,10 +42,7 @@ def check_map_files(map_in: str | None, map_out: str | None, world: str) -> MapS
         if out.is_dir() or not out.parent.is_dir():
             raise MapFormatError(f"{out}: cannot write a map there (a directory, or its directory does not exist)")
         if out.exists() and (map_in is None or out.resolve() != Path(map_in).resolve()):
-            info = MapStore.info(out)  # not ours / corrupt: MapFormatError, nothing overwritten
-            if info.world_id != world:
-                raise MapFormatError(f"{out}: holds a map of world {info.world_id!r}, not {world!r}; refusing to "
-                                     "overwrite it")
+            MapStore.check_replaceable(out, world)  # not ours, corrupt or another world's: nothing overwritten
     return snap
 
 

@@ -219,7 +219,7 @@ class MapStore:
             why = "is not a directory" if path.parent.exists() else "does not exist"
             raise MapFormatError(f"{path}: cannot write a map there ({path.parent} {why})")
         if path.exists():
-            MapStore._check_replaceable(path, snapshot.world_id, replace_other_world)
+            MapStore.check_replaceable(path, snapshot.world_id, replace_other_world)
         # unique per write, not only per process: two threads saving the same path must not share (and unlink,
         # or rename half-written) one temporary file
         tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{secrets.token_hex(4)}")
@@ -239,7 +239,10 @@ class MapStore:
         return path
 
     @staticmethod
-    def _check_replaceable(path: Path, world_id: str, replace_other_world: bool) -> None:
+    def check_replaceable(path: Path, world_id: str, replace_other_world: bool = False) -> None:
+        """Refuse (:class:`MapFormatError` naming ``path``) to replace an existing file that is not a readable
+        slam2d map, or that holds another world's map unless ``replace_other_world``; callers check before a long
+        run, :meth:`write` checks again when it writes."""
         try:
             info = MapStore.info(path)
         except MapFormatError as e:
