@@ -51,13 +51,44 @@ def test_two_writers_of_one_path_in_one_process_both_land(tmp_path: Path, monkey
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.db"]  # no temporary file left behind
 
 
-def _tamper(path: Path, sql: str, *params: object) -> Path:
+def _tamper(path: Path, sql: str, *params: object, keep_digest: bool = False) -> Path:
+    """A map changed by ``sql``; without ``keep_digest`` its digest goes too (as in a file written before digests),
+    so that the checks behind the digest are the ones tested."""
     MapStore.write(path, _snap())
     con = sqlite3.connect(path)
     con.execute(sql, params)
+    if not keep_digest:
+        con.execute("DELETE FROM meta WHERE key = 'digest'")
     con.commit()
     con.close()
     return path
+
+
+@pytest.mark.parametrize("sql", ["UPDATE nodes SET x = x + 1e-9 WHERE id = 2",
+                                 "UPDATE edges SET dtheta = -dtheta WHERE id = 0",
+                                 "UPDATE keyframes SET y = 0.0 WHERE id = 1",
+                                 "UPDATE meta SET value = '30.5' WHERE key = 'scan_max_range_m'",
+                                 "UPDATE arrays SET shape = '[9, 8]' WHERE name = 'occupancy_logodds'"])
+def test_a_changed_number_is_found_by_the_digest(tmp_path: Path, sql: str) -> None:
+    """A changed REAL in a row passed SQLite's quick_check, the row counts and zlib's own checksum: the map was read
+    with the wrong number. The digest recorded at write time finds it."""
+    p = _tamper(tmp_path / "flip.db", sql, keep_digest=True)
+    with pytest.raises(MapFormatError, match="flip.db: corrupt slam2d map .*digest"):
+        MapStore.read(p)
+    # the same file without its digest (as written before digests) is read, changed number and all
+    con = sqlite3.connect(p)
+    con.execute("DELETE FROM meta WHERE key = 'digest'")
+    con.commit()
+    con.close()
+    assert isinstance(MapStore.read(p), MapSnapshot)
+
+
+def test_an_untouched_map_matches_its_digest_after_a_rewrite(tmp_path: Path) -> None:
+    p = tmp_path / "m.db"
+    MapStore.write(p, _snap(3))
+    snap = MapStore.read(p)
+    MapStore.write(p, snap)  # read back and saved again: the same rows, the same digest check
+    assert MapStore.read(p).equals(_snap(3))
 
 
 @pytest.mark.parametrize("sql", ["DELETE FROM meta WHERE key = 'world_id'",

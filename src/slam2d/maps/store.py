@@ -14,7 +14,9 @@ Safety:
 * The file is tagged with an SQLite ``application_id`` and a schema version (``user_version``). Reading a file
   that is not a SQLite database, not ours, truncated or corrupt (``PRAGMA quick_check`` plus row counts recorded
   at write time), written by a newer schema, or built for another world raises :class:`MapFormatError` naming the
-  file. Reads open the file read-only.
+  file. Reads open the file read-only. A SHA-256 digest of every row, recorded at write time, finds a changed number
+  that SQLite's own checks pass (a bit flip on disk, an edit by hand); files written before the digest have none
+  and are read without it.
 * A write refuses to replace an existing file that is not a slam2d map (or is from a newer schema), and a map of
   another world unless ``replace_other_world=True``.
 """
@@ -28,6 +30,7 @@ import json
 import os
 import secrets
 import sqlite3
+import struct
 import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -206,6 +209,32 @@ def _unblob(b: bytes, dtype: type, shape: tuple[int, ...]) -> NDArray[Any]:
     return np.frombuffer(raw, dtype=dtype).reshape(shape).copy()
 
 
+#: what the digest covers, in this order: every table, the digest's own row left out
+_DIGESTED = ("SELECT key, value FROM meta WHERE key != 'digest' ORDER BY key", "SELECT * FROM keyframes ORDER BY id",
+             "SELECT * FROM nodes ORDER BY id", "SELECT * FROM edges ORDER BY id",
+             "SELECT name, dtype, shape, data FROM arrays ORDER BY name")
+
+
+def _content_digest(con: sqlite3.Connection) -> str:
+    """SHA-256 of the map's rows as SQLite returns them, each value tagged with its type and length (so that no two
+    different contents give the same byte stream)."""
+    h = hashlib.sha256()
+    for query in _DIGESTED:
+        h.update(query.encode())
+        for row in con.execute(query):
+            for v in row:
+                if isinstance(v, float):
+                    h.update(b"f" + struct.pack("<d", v))
+                elif isinstance(v, int):
+                    h.update(b"i%d;" % v)
+                else:
+                    raw = v if isinstance(v, bytes) else str(v).encode()
+                    h.update(b"b" if isinstance(v, bytes) else b"s")
+                    h.update(b"%d:" % len(raw))
+                    h.update(raw)
+    return h.hexdigest()
+
+
 class MapStore:
     """Reads and writes :class:`MapSnapshot` files (see the module docstring for the guarantees)."""
 
@@ -293,6 +322,8 @@ class MapStore:
             con.executemany("INSERT INTO arrays VALUES (?, ?, ?, ?)",
                             ((n, np.dtype(dt).name, json.dumps(list(a.shape)), _blob(a, dt))
                              for n, (a, dt) in arrays.items()))
+            # a digest of everything above: a changed number (which SQLite's own checks pass) is found on reading
+            con.execute("INSERT INTO meta VALUES ('digest', ?)", (json.dumps(_content_digest(con)),))
             # the schema version goes in last: a file without it was never finished
             con.execute(f"PRAGMA user_version={SCHEMA_VERSION}")
             con.execute("COMMIT")
@@ -346,6 +377,8 @@ class MapStore:
             meta = {k: json.loads(v) for k, v in con.execute("SELECT key, value FROM meta")}
             counts = {t: int(con.execute(f"SELECT count(*) FROM {t}").fetchone()[0])
                       for t in ("keyframes", "nodes", "edges")}
+            # files written before the digest have none; every file since must match its own
+            digest = _content_digest(con) if "digest" in meta else None
         except sqlite3.DatabaseError as e:
             raise MapFormatError(f"{path}: corrupt or truncated slam2d map ({e})") from None
         except json.JSONDecodeError as e:
@@ -358,6 +391,9 @@ class MapStore:
         expected = {k: recorded.get(k) if isinstance(recorded, dict) else None for k in counts}
         if expected != counts:
             raise MapFormatError(f"{path}: corrupt slam2d map (rows {counts} but the metadata records {expected})")
+        if digest is not None and digest != meta["digest"]:
+            raise MapFormatError(f"{path}: corrupt slam2d map (its contents no longer match the digest recorded "
+                                 "when it was written)")
         try:
             return MapInfo(path, int(meta["schema_version"]), str(meta["world_id"]), str(meta.get("created_at", "")),
                            str(meta.get("created_by", "")), dict(meta["counts"]), dict(meta.get("user", {})))
