@@ -69,8 +69,8 @@ def _world_id(scenario: str, seed: int, overrides: dict[str, str]) -> str:
 
 def _check_save_target(args: argparse.Namespace, scenario: ScenarioConfig) -> None:
     """Refuse a bad ``--out`` before the simulation and the run (``MapStore.write`` checks again when it writes):
-    a directory or unwritable place, a missing folder, or (without --replace-other-world) a file that is not a
-    slam2d map or holds another world's map."""
+    a directory or unwritable place, a missing folder, a file that is not a slam2d map, or (without
+    --replace-other-world) one that holds another world's map."""
     from slam2d.cli.map_session import world_of
 
     path = check_output(args.out, "--out")
