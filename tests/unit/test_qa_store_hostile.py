@@ -55,13 +55,18 @@ def _tamper(path: Path, sql: str, *params: object, keep_digest: bool = False) ->
     """A map changed by ``sql``; without ``keep_digest`` its digest goes too (as in a file written before digests),
     so that the checks behind the digest are the ones tested."""
     MapStore.write(path, _snap())
+    _sql(path, sql, *params)
+    if not keep_digest:
+        _sql(path, "DELETE FROM meta WHERE key = 'digest'")
+    return path
+
+
+def _sql(path: Path, sql: str, *params: object) -> None:
+    """One statement applied behind the store's back."""
     con = sqlite3.connect(path)
     con.execute(sql, params)
-    if not keep_digest:
-        con.execute("DELETE FROM meta WHERE key = 'digest'")
     con.commit()
     con.close()
-    return path
 
 
 @pytest.mark.parametrize("sql", ["UPDATE nodes SET x = x + 1e-9 WHERE id = 2",
@@ -76,10 +81,7 @@ def test_a_changed_number_is_found_by_the_digest(tmp_path: Path, sql: str) -> No
     with pytest.raises(MapFormatError, match="flip.db: corrupt slam2d map .*digest"):
         MapStore.read(p)
     # the same file without its digest (as written before digests) is read, changed number and all
-    con = sqlite3.connect(p)
-    con.execute("DELETE FROM meta WHERE key = 'digest'")
-    con.commit()
-    con.close()
+    _sql(p, "DELETE FROM meta WHERE key = 'digest'")
     assert isinstance(MapStore.read(p), MapSnapshot)
 
 
